@@ -1,0 +1,1 @@
+"""TrackGraph's services: source, tracker, keyframe_vl, fusion, query, and the CLI."""

@@ -1,0 +1,225 @@
+"""The ``trackgraph`` command: one entry point, one subcommand per job.
+
+Every subcommand exits non-zero on failure with a one-line reason on stderr
+(DESIGN.md section 8).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+
+class CommandError(Exception):
+    """A command failed for a reason the user can act on; printed as one line."""
+
+
+def _cmd_router(args: argparse.Namespace) -> int:
+    from services.router import run_router
+    from shared.config import TransportConfig, load_config
+
+    if args.config:
+        cfg = load_config(args.config).transport.model_copy(update={"mode": "router"})
+    else:
+        cfg = TransportConfig(mode="router", connect=[], listen=args.listen or ["tcp/127.0.0.1:7447"])
+    if args.listen:
+        cfg = cfg.model_copy(update={"listen": args.listen})
+    if args.zenoh_config:
+        cfg = cfg.model_copy(update={"zenoh_config_file": args.zenoh_config})
+    cfg = TransportConfig.model_validate(cfg.model_dump())
+    run_router(cfg)
+    return 0
+
+
+def _cmd_config_show(args: argparse.Namespace) -> int:
+    from shared.config import dump_yaml, load_config
+
+    cfg = load_config(args.path)
+    if args.json:
+        print(json.dumps(cfg.model_dump(mode="json"), indent=2))
+    else:
+        print(dump_yaml(cfg), end="")
+    return 0
+
+
+def _cmd_config_check(args: argparse.Namespace) -> int:
+    from shared.config import load_config
+
+    load_config(args.path)
+    print(f"ok: {args.path}")
+    return 0
+
+
+def _load_or_default(path: Path | None):
+    from shared.config import TrackGraphConfig, load_config
+
+    return load_config(path) if path else TrackGraphConfig()
+
+
+def _cmd_synth(args: argparse.Namespace) -> int:
+    from shared.synth import run_synth
+
+    result = run_synth(args.preset, args.seed, args.out, overwrite=args.overwrite)
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print(f"wrote {result['frames']} frames with {result['objects']} objects to {result['out']}")
+        print(f"  pictures: {Path(result['out']) / 'contact_sheet.png'}, {Path(result['out']) / 'topdown.png'}")
+    return 0
+
+
+def _cmd_source(args: argparse.Namespace) -> int:
+    from services.source.node import run_source
+
+    cfg = _load_or_default(args.config)
+    src = cfg.source.model_dump()
+    for key in ("dataset", "mode", "stride", "max_frames"):
+        if getattr(args, key) is not None:
+            src[key] = getattr(args, key)
+    if args.rate is not None:
+        src["rate_hz"] = args.rate
+    update = {"source": type(cfg.source).model_validate(src)}
+    if args.connect:
+        update["transport"] = cfg.transport.model_copy(update={"connect": args.connect})
+    cfg = type(cfg).model_validate({**cfg.model_dump(), **{k: v.model_dump() for k, v in update.items()}})
+    stats = run_source(cfg, args.sequence, wait_subscribers_s=args.wait)
+    out = {"published": stats.published, "dropped": stats.dropped, "seconds": round(stats.seconds, 3)}
+    print(json.dumps(out) if args.json else f"published {stats.published} frames, dropped {stats.dropped}, in {stats.seconds:.1f} s")
+    return 0
+
+
+def _print_metrics(result: dict, as_json: bool, keys: list[str]) -> None:
+    if as_json:
+        print(json.dumps(result))
+        return
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(show_header=True, header_style="bold")
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    for k in keys:
+        v = result.get(k)
+        table.add_row(k, "n/a" if v is None else (f"{v:.3f}" if isinstance(v, float) else str(v)))
+    Console().print(table)
+
+
+def _cmd_eval_openlex3d(args: argparse.Namespace) -> int:
+    from shared.eval import eval_openlex3d
+
+    if args.pred is None and not args.oracle:
+        raise CommandError("give --pred MAP_DIR, or --oracle to score the ground truth itself")
+    result = eval_openlex3d(args.pred, args.gt, oracle=args.oracle, top_n=args.top_n)
+    keys = ["synonyms", "depictions", "vis_sim", "clutter", "missing", "incorrect", "ap", "ap50", "ap25", "top1_hit_rate"]
+    _print_metrics(result, args.json, keys)
+    return 0
+
+
+def _cmd_eval_instances(args: argparse.Namespace) -> int:
+    from shared.eval import eval_instances
+
+    _print_metrics(eval_instances(args.pred, args.gt), args.json, ["ap", "ap50", "ap25", "segments_per_object"])
+    return 0
+
+
+def _cmd_eval_tracking(args: argparse.Namespace) -> int:
+    from shared.eval import eval_tracking
+
+    keys = ["mean_iou", "idf1", "id_switches_per_100_frames_per_object", "fragmentations"]
+    _print_metrics(eval_tracking(args.pred, args.gt), args.json, keys)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="trackgraph", description=__doc__.splitlines()[0])
+    p.add_argument("-v", "--verbose", action="count", default=0, help="debug logging")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    r = sub.add_parser("router", help="run a Zenoh router (no separate binary needed)")
+    r.add_argument("--listen", action="append", metavar="ENDPOINT", help="e.g. tcp/0.0.0.0:7447 (repeatable; default tcp/127.0.0.1:7447)")
+    r.add_argument("--config", metavar="FILE", help="take the transport section of this system config")
+    r.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 file (TLS, users, access control)")
+    r.set_defaults(func=_cmd_router)
+
+    sy = sub.add_parser("synth", help="generate a synthetic RGB-D sequence with ground truth")
+    sy.add_argument("--preset", choices=["small", "demo", "revisit"], default="small")
+    sy.add_argument("--seed", type=int, default=0)
+    sy.add_argument("--out", type=Path, required=True, metavar="DIR")
+    sy.add_argument("--overwrite", action="store_true", help="replace a non-empty DIR")
+    sy.add_argument("--json", action="store_true", help='print {"frames", "objects", "out"}')
+    sy.set_defaults(func=_cmd_synth)
+
+    so = sub.add_parser("source", help="replay a sequence as frames over Zenoh")
+    so.add_argument("sequence", type=Path, metavar="SEQ_DIR")
+    so.add_argument("--config", type=Path, metavar="FILE")
+    so.add_argument("--dataset", choices=["replica", "scannetpp", "hm3d", "tum", "rosbag"])
+    so.add_argument("--mode", choices=["lossless", "live"])
+    so.add_argument("--rate", type=float, metavar="HZ", help="live-mode rate")
+    so.add_argument("--stride", type=int, metavar="N")
+    so.add_argument("--max-frames", type=int, metavar="N")
+    so.add_argument("--connect", action="append", metavar="ENDPOINT", help="router endpoint(s)")
+    so.add_argument("--wait", type=float, default=30.0, metavar="S", help="lossless: wait this long for a subscriber")
+    so.add_argument("--json", action="store_true")
+    so.set_defaults(func=_cmd_source)
+
+    ev = sub.add_parser("eval", help="evaluate maps, tracks and masks against ground truth")
+    evsub = ev.add_subparsers(dest="eval_command", required=True, metavar="WHAT")
+    ol = evsub.add_parser("openlex3d", help="OpenLex3D top-N categories and retrieval AP")
+    ol.add_argument("--pred", type=Path, metavar="MAP_DIR", help="map in the OpenLex3D prediction format")
+    ol.add_argument("--gt", type=Path, required=True, metavar="GT_DIR")
+    ol.add_argument("--oracle", action="store_true", help="score the ground truth itself (upper bound)")
+    ol.add_argument("--top-n", type=int, default=5, metavar="N")
+    ol.add_argument("--json", action="store_true")
+    ol.set_defaults(func=_cmd_eval_openlex3d)
+    ins = evsub.add_parser("instances", help="class-agnostic 3D instance AP and duplicates")
+    ins.add_argument("--pred", type=Path, required=True, metavar="MAP_DIR")
+    ins.add_argument("--gt", type=Path, required=True, metavar="GT_DIR")
+    ins.add_argument("--json", action="store_true")
+    ins.set_defaults(func=_cmd_eval_instances)
+    tr = evsub.add_parser("tracking", help="2D source-track quality (needs map --save-tracks)")
+    tr.add_argument("--pred", type=Path, required=True, metavar="MAP_DIR")
+    tr.add_argument("--gt", type=Path, required=True, metavar="SEQ_DIR")
+    tr.add_argument("--json", action="store_true")
+    tr.set_defaults(func=_cmd_eval_tracking)
+
+    c = sub.add_parser("config", help="inspect and validate config files")
+    csub = c.add_subparsers(dest="config_command", required=True, metavar="ACTION")
+    show = csub.add_parser("show", help="print the resolved config, defaults included")
+    show.add_argument("path", type=Path)
+    show.add_argument("--json", action="store_true", help="JSON instead of YAML")
+    show.set_defaults(func=_cmd_config_show)
+    check = csub.add_parser("check", help="validate a config; non-zero exit names the bad key")
+    check.add_argument("path", type=Path)
+    check.set_defaults(func=_cmd_config_check)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    from shared.config import ConfigError
+    from shared.datasets.base import DatasetError
+    from shared.eval.errors import EvalInputError
+    from shared.logs import setup_logging
+    from shared.transport import TransportError
+
+    args = build_parser().parse_args(argv)
+    setup_logging(args.verbose)
+    func: Callable[[argparse.Namespace], int] = args.func
+    try:
+        return func(args)
+    except (ConfigError, CommandError, DatasetError, EvalInputError, TransportError) as exc:
+        print(f"trackgraph: error: {'; '.join(str(exc).splitlines())}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    except Exception as exc:  # noqa: BLE001 - a one-line reason beats a traceback for users
+        if args.verbose:
+            raise
+        print(f"trackgraph: error: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""The source service: replays a recorded sequence as ``frames`` over Zenoh."""

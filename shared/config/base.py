@@ -1,0 +1,102 @@
+"""Strict pydantic base and YAML loading with errors that name the file and the key."""
+
+from __future__ import annotations
+
+import difflib
+from pathlib import Path
+from typing import TypeVar
+
+import yaml
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+
+class StrictModel(BaseModel):
+    """Base of every config model: unknown keys are errors, docstrings become descriptions."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        validate_assignment=True,
+        use_attribute_docstrings=True,
+        frozen=False,
+    )
+
+
+class ConfigError(ValueError):
+    """A config file could not be read or does not validate. The message names file and key."""
+
+
+M = TypeVar("M", bound=BaseModel)
+
+
+def _keys_at(model: type[BaseModel] | None, path: tuple) -> list[str]:
+    """Field names of the nested model at ``path`` (for "did you mean" hints)."""
+    for part in path:
+        if model is None:
+            return []
+        field = model.model_fields.get(str(part))
+        ann = getattr(field, "annotation", None)
+        model = ann if isinstance(ann, type) and issubclass(ann, BaseModel) else None
+    return list(model.model_fields) if model is not None else []
+
+
+def format_validation_error(err: ValidationError, source: str, model: type[BaseModel] | None = None) -> str:
+    """One line per problem: ``SOURCE: dotted.key: what was expected (got VALUE)``."""
+    lines = []
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e["loc"]) or "<root>"
+        if e["type"] == "extra_forbidden":
+            close = difflib.get_close_matches(str(e["loc"][-1]), _keys_at(model, e["loc"][:-1]), n=1)
+            msg = "unknown key" + (f" (did you mean {close[0]!r}?)" if close else "")
+        else:
+            msg = e["msg"]
+        got = e.get("input")
+        shown = "" if e["type"] in ("extra_forbidden", "missing") else f" (got {got!r})"
+        if len(shown) > 80:
+            shown = shown[:77] + "...)"
+        lines.append(f"{source}: {loc}: {msg}{shown}")
+    return "\n".join(lines)
+
+
+def read_yaml(path: str | Path) -> dict:
+    """Read a YAML mapping, or raise :class:`ConfigError` naming the file."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read config file ({exc.strerror or exc})") from exc
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML ({exc})") from exc
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping at the top level, got {type(data).__name__}")
+    return data
+
+
+def validate(model: type[M], data: dict, source: str) -> M:
+    """Validate ``data`` as ``model``; errors name ``source`` and every bad key."""
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(exc, source, model)) from None
+
+
+def load_model(model: type[M], path: str | Path) -> M:
+    """Load one YAML file as ``model``."""
+    return validate(model, read_yaml(path), str(path))
+
+
+def dump_yaml(model: BaseModel) -> str:
+    """The fully resolved config (defaults included) as YAML."""
+    return yaml.safe_dump(model.model_dump(mode="json"), sort_keys=False)
+
+
+def save_resolved(model: BaseModel, path: str | Path) -> Path:
+    """Write the resolved config atomically beside a map or run, so the run can be reproduced."""
+    from shared.io import atomic_write_text
+
+    return atomic_write_text(Path(path), dump_yaml(model))

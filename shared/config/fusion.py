@@ -1,0 +1,114 @@
+"""TSDF with track hypotheses, 3D segments, re-identification and the scene graph
+(paper sections III-A, III-C, III-D, III-E)."""
+
+from __future__ import annotations
+
+from pydantic import Field, model_validator
+
+from shared.config.base import StrictModel
+
+
+class TSDFConfig(StrictModel):
+    """Volumetric fusion and the per-voxel source-track hypotheses (III-C)."""
+
+    voxel_size: float = Field(0.03, gt=0, le=1.0)
+    """Voxel edge in metres (IV-A: 0.03; 0.05 lighter; 0.125 onboard)."""
+    trunc_voxels: float = Field(4.0, gt=0)
+    """TSDF truncation distance in voxels."""
+    depth_min: float = Field(0.1, ge=0)
+    """Depth readings nearer than this (m) are ignored."""
+    depth_max: float = Field(5.0, gt=0)
+    """Depth readings farther than this (m) are ignored."""
+    block_resolution: int = Field(8, ge=4, le=32)
+    """Voxels per block edge in the voxel block grid."""
+    initial_blocks: int = Field(4000, ge=16)
+    """Blocks preallocated; the grid grows by doubling."""
+    hypotheses: int = Field(4, ge=1, le=16)
+    """K, track hypotheses kept per voxel (III-C)."""
+    alpha_p: float = Field(0.25, gt=0, le=1)
+    """alpha_p, confidence of propagated masks (eq. 6)."""
+    beta_p: float = Field(0.1, ge=0)
+    """beta_p, decay of that confidence per frame since the last keyframe (eq. 6)."""
+    mesh_min_weight: float = Field(1.0, ge=0)
+    """Marching cubes uses voxels whose TSDF weight exceeds this: 1 keeps surfaces seen in at
+    least two frames, which drops single-frame depth noise."""
+    active_window_m: float = Field(8.0, gt=0)
+    """Radius of the active window around the pose (III-A); blocks outside are archived."""
+
+    @model_validator(mode="after")
+    def _depth_range(self) -> TSDFConfig:
+        if self.depth_min >= self.depth_max:
+            raise ValueError(f"depth_min ({self.depth_min}) must be below depth_max ({self.depth_max})")
+        return self
+
+
+class SegmentsConfig(StrictModel):
+    """3D segment updater (III-D, eq. 7)."""
+
+    min_vertices: int = Field(20, ge=1)
+    """A track needs this many winning vertices to get a segment (IV-A)."""
+    min_shared: int = Field(5, ge=1)
+    """|V_q ∩ V_i| at least this for a candidate (eq. 7)."""
+    theta_rho: float = Field(0.75, ge=0, le=1)
+    """Either overlap ratio rho must reach this (eq. 7)."""
+    theta_sim: float = Field(0.80, ge=-1, le=1)
+    """DINOv3 cosine between track and segment must reach this (III-D)."""
+
+
+class ReidConfig(StrictModel):
+    """Long-term re-identification against historical segments (III-E, eqs. 8-9)."""
+
+    enabled: bool = True
+    """Off gives the ablation without re-identification."""
+    r_nn: float = Field(0.10, gt=0)
+    """r_nn, vertex neighbour radius of the overlap o_qh (eq. 8), metres."""
+    lambda_o: float = Field(0.5, ge=0, le=1)
+    """lambda_o, weight of geometric overlap in J_qh (eq. 9)."""
+    lambda_a: float = Field(0.5, ge=0, le=1)
+    """lambda_a, weight of DINOv3 cosine in J_qh (eq. 9); lambda_o + lambda_a = 1."""
+    o_min: float = Field(0.42, ge=0, le=1)
+    """Gate on o_qh (eq. 8)."""
+    cos_min: float = Field(0.70, ge=-1, le=1)
+    """Gate on the DINOv3 cosine (eq. 9)."""
+    j_min: float = Field(0.65, ge=0, le=1)
+    """Gate on J_qh (eq. 9)."""
+    search_radius_m: float = Field(2.0, gt=0)
+    """k-d tree centroid radius giving the candidate set H_q."""
+
+    @model_validator(mode="after")
+    def _weights_sum(self) -> ReidConfig:
+        if abs(self.lambda_o + self.lambda_a - 1.0) > 1e-6:
+            raise ValueError(
+                f"lambda_o + lambda_a must be 1 (eq. 9), got {self.lambda_o + self.lambda_a}"
+            )
+        return self
+
+
+class GraphConfig(StrictModel):
+    """Places and rooms above the segment layer (Hydra-style)."""
+
+    place_spacing_m: float = Field(0.5, gt=0)
+    """Spacing of sparse free-space place nodes."""
+    room_erosion_m: float = Field(0.4, ge=0)
+    """Erosion of free space that separates rooms at doorways."""
+    min_room_area_m2: float = Field(2.0, ge=0)
+    """Free-space components smaller than this are not rooms."""
+
+
+class FusionConfig(StrictModel):
+    """The fusion service and ``trackgraph map``."""
+
+    tsdf: TSDFConfig = Field(default_factory=TSDFConfig)
+    """Volumetric fusion."""
+    segments: SegmentsConfig = Field(default_factory=SegmentsConfig)
+    """Segment updater."""
+    reid: ReidConfig = Field(default_factory=ReidConfig)
+    """Long-term re-identification."""
+    graph: GraphConfig = Field(default_factory=GraphConfig)
+    """Places and rooms."""
+    mesh_every_n_frames: int = Field(10, ge=1)
+    """Marching cubes and the segment update run every N fused frames."""
+    mesh_delta_every_n_updates: int = Field(5, ge=1)
+    """Mesh chunks ride in every Nth graph delta; segments ride in every one."""
+    snapshot_interval_s: float = Field(30.0, gt=0)
+    """Seconds between on-disk snapshots of the graph."""

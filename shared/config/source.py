@@ -1,0 +1,60 @@
+"""The data source: dataset replay, and how fast it plays."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from shared.config.base import StrictModel
+
+
+class RosbagConfig(StrictModel):
+    """Topics and frames of a ROS 2 bag read with ``rosbags`` (no ROS install needed)."""
+
+    rgb_topic: str = "/camera/color/image_raw"
+    """sensor_msgs/Image (rgb8, bgr8) or sensor_msgs/CompressedImage colour topic."""
+    depth_topic: str = "/camera/aligned_depth_to_color/image_raw"
+    """sensor_msgs/Image depth topic (16UC1 in depth units, or 32FC1 in metres)."""
+    camera_info_topic: str = "/camera/color/camera_info"
+    """sensor_msgs/CameraInfo of the colour camera."""
+    pose_topic: str | None = None
+    """nav_msgs/Odometry or geometry_msgs/PoseStamped giving the camera pose; when unset the
+    pose comes from TF (``/tf``, ``/tf_static``)."""
+    world_frame: str = "map"
+    """TF frame the poses are expressed in."""
+    camera_frame: str | None = None
+    """TF frame of the camera (OpenCV optical axes); default: the image header's frame_id."""
+    depth_scale: float = Field(1000.0, gt=0)
+    """Depth units per metre of 16UC1 depth (1000 for millimetres)."""
+    max_time_diff_s: float = Field(0.02, gt=0)
+    """Colour, depth and pose are paired when their stamps differ by at most this."""
+
+
+class TumConfig(StrictModel):
+    """TUM RGB-D association."""
+
+    max_time_diff_s: float = Field(0.02, gt=0)
+    """Colour, depth and ground-truth stamps are associated within this (TUM's tool: 0.02)."""
+
+
+class SourceConfig(StrictModel):
+    """Dataset replay settings of the source service and of ``trackgraph map``."""
+
+    dataset: Literal["replica", "scannetpp", "hm3d", "tum", "rosbag"] = "replica"
+    """Reader for the sequence folder (DESIGN.md section 7)."""
+    path: str | None = None
+    """Sequence folder or bag; the command line's SEQ_DIR overrides it."""
+    mode: Literal["lossless", "live"] = "lossless"
+    """lossless: block until subscribers keep up (offline mapping). live: publish at
+    ``rate_hz`` and drop, counting, frames a slow subscriber cannot take."""
+    rate_hz: float = Field(30.0, gt=0)
+    """Publishing rate in live mode (Replica is 30 Hz)."""
+    stride: int = Field(1, ge=1)
+    """Use every Nth frame."""
+    max_frames: int | None = Field(None, ge=1)
+    """Stop after this many frames (after striding)."""
+    rosbag: RosbagConfig = Field(default_factory=RosbagConfig)
+    """Topics and TF frames when ``dataset: rosbag``."""
+    tum: TumConfig = Field(default_factory=TumConfig)
+    """Timestamp association when ``dataset: tum``."""

@@ -1,0 +1,83 @@
+"""Source-track propagation between keyframes (paper section III-B, eqs. 1-4)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, model_validator
+
+from shared.config.base import StrictModel
+
+
+class DenseFeaturesConfig(StrictModel):
+    """Dense per-patch features used to carry mask identity (DINOv3 in the paper)."""
+
+    backend: Literal["dinov3", "dinov3_onnx", "classical"] = "dinov3"
+    """Which implementation; ``classical`` needs no weights."""
+    loader: Literal["transformers", "timm", "hub"] = "transformers"
+    """How ``dinov3`` weights are stored: a transformers folder, a timm file or a hub .pth."""
+    weights: str = "weights/dinov3_vits16plus"
+    """Local ViT-S+/16 weights; never downloaded."""
+    short_side: int = Field(720, ge=16)
+    """Input resize: short side in pixels, rounded to a multiple of the patch size
+    (IV-A: 720, 480 onboard)."""
+    patch_size: int = Field(16, ge=1)
+    """Patch size of the backbone, and the grid of the classical descriptors."""
+
+
+class PropagationConfig(StrictModel):
+    """Label propagation between keyframes (eq. 1, the DINOv3 recipe)."""
+
+    context_frames: int = Field(7, ge=0)
+    """Recent frames used as references besides the keyframe (eq. 1's r)."""
+    window_radius: int = Field(12, ge=1)
+    """Reference patches q lie within this many patches of p (eq. 1's K_t(p))."""
+    topk: int = Field(5, ge=1)
+    """References kept per patch, by cosine similarity (eq. 1)."""
+    temperature: float = Field(0.2, gt=0)
+    """Softmax temperature giving a_pqr (eq. 1)."""
+
+
+class AssociationConfig(StrictModel):
+    """Keyframe correction: propagated masks versus new detections (eqs. 2-3)."""
+
+    w_iou: float = Field(0.5, ge=0, le=1)
+    """Weight of mask IoU in s_ij (eq. 3)."""
+    w_feat: float = Field(0.5, ge=0, le=1)
+    """Weight of DINOv3 cosine in s_ij (eq. 3); w_iou + w_feat = 1."""
+    iou_min: float = Field(0.15, ge=0, le=1)
+    """Gate: candidate pairs need IoU at least this (eq. 3)."""
+    score_min: float = Field(0.35, ge=0, le=1)
+    """Gate: candidate pairs need s_ij at least this (eq. 3)."""
+    ema: float = Field(0.2, ge=0, le=1)
+    """eta, the track DINOv3 feature EMA rate (III-B)."""
+
+    @model_validator(mode="after")
+    def _weights_sum(self) -> AssociationConfig:
+        if abs(self.w_iou + self.w_feat - 1.0) > 1e-6:
+            raise ValueError(f"w_iou + w_feat must be 1 (eq. 3), got {self.w_iou + self.w_feat}")
+        return self
+
+
+class TrackerConfig(StrictModel):
+    """The tracker service."""
+
+    mode: Literal["propagation", "per_frame", "ground_truth"] = "propagation"
+    """propagation: the paper's method. per_frame: segment every frame and associate by
+    IoU + appearance, the baseline of the tracker ablation. ground_truth: perfect identities
+    from a synthetic scene's instance images, to measure fusion alone."""
+    keyframe_interval: int = Field(24, ge=1)
+    """K_f, frames between keyframes (III-B)."""
+    features: DenseFeaturesConfig = Field(default_factory=DenseFeaturesConfig)
+    """Dense feature backend."""
+    propagation: PropagationConfig = Field(default_factory=PropagationConfig)
+    """Eq. 1 parameters."""
+    association: AssociationConfig = Field(default_factory=AssociationConfig)
+    """Eqs. 2-3 parameters."""
+    keyframe_timeout_s: float = Field(5.0, gt=0)
+    """Masks not back after this long count as lost; the tracker keeps propagating and
+    retries at the next keyframe."""
+    history_frames: int = Field(48, ge=1)
+    """Recent feature maps kept to re-propagate when keyframe masks arrive late."""
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    """Torch device; auto takes CUDA when present."""

@@ -1,0 +1,61 @@
+"""One interface for every dataset reader: an indexed sequence of :class:`Frame`.
+
+Poses are camera-to-world in OpenCV camera axes (x right, y down, z forward), whatever the
+format stores; readers convert. Every error names the file it comes from.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from pathlib import Path
+from types import TracebackType
+
+import numpy as np
+
+from shared.geometry import Intrinsics, Pose
+from shared.messages.frames import Frame
+
+
+class DatasetError(ValueError):
+    """A dataset file is missing, unreadable or inconsistent. The message names the file."""
+
+
+class SequenceReader(ABC):
+    """A recorded RGB-D sequence with poses."""
+
+    root: Path
+    intrinsics: Intrinsics
+    depth_scale: float
+
+    @abstractmethod
+    def __len__(self) -> int:
+        """Number of frames."""
+
+    @abstractmethod
+    def pose(self, i: int) -> Pose:
+        """Camera-to-world pose of frame ``i`` (OpenCV axes)."""
+
+    @abstractmethod
+    def frame(self, i: int) -> Frame:
+        """Load frame ``i`` (RGB, depth, intrinsics, pose; ground-truth instances if any)."""
+
+    def __iter__(self) -> Iterator[Frame]:
+        for i in range(len(self)):
+            yield self.frame(i)
+
+    def poses(self) -> np.ndarray:
+        """(N, 4, 4) all poses."""
+        return np.stack([self.pose(i) for i in range(len(self))]) if len(self) else np.zeros((0, 4, 4))
+
+    def close(self) -> None:
+        """Release open files (a ROS bag); folder readers hold none. Safe to call twice."""
+        return None
+
+    def __enter__(self) -> SequenceReader:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()

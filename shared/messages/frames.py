@@ -1,0 +1,109 @@
+"""Frames from the source, and tracked frames from the tracker."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import numpy as np
+from pydantic import Field, field_validator, model_validator
+
+from shared.arrays import ArraySpec
+from shared.geometry import Intrinsics, is_rigid
+from shared.messages.base import Message, register
+
+RGB = Annotated[np.ndarray, ArraySpec(("uint8",), (None, None, 3), kind="rgb")]
+Depth = Annotated[np.ndarray, ArraySpec(("uint16",), (None, None), kind="depth")]
+Labels = Annotated[np.ndarray, ArraySpec(("int32",), (None, None), kind="label")]
+Pose4 = Annotated[np.ndarray, ArraySpec(("float64",), (4, 4), finite=True)]
+
+
+@register
+class Frame(Message):
+    """One RGB-D observation with its pose (DESIGN.md section 2, ``frames``)."""
+
+    frame_index: int = Field(ge=0)
+    """Index of the frame in its sequence (after striding, the original index)."""
+    time_s: float = 0.0
+    """Capture time in seconds."""
+    rgb: RGB
+    """(H, W, 3) uint8 colour image."""
+    depth: Depth
+    """(H, W) uint16 depth; metres = depth / depth_scale; 0 means no reading."""
+    depth_scale: float = Field(gt=0)
+    """Depth units per metre (Replica 6553.5, TUM 5000, millimetres 1000)."""
+    intrinsics: Intrinsics
+    """Pinhole intrinsics at the resolution of ``rgb``."""
+    T_world_cam: Pose4
+    """(4, 4) camera-to-world pose, OpenCV camera axes."""
+    instances: Labels | None = None
+    """(H, W) int32 ground-truth instance ids, only for synthetic scenes (used by the
+    simulated perception backends and by evaluation); -1 where there is none."""
+
+    @field_validator("T_world_cam")
+    @classmethod
+    def _rigid(cls, v: np.ndarray) -> np.ndarray:
+        if not is_rigid(v):
+            raise ValueError("T_world_cam is not a rigid transform")
+        return v
+
+    @model_validator(mode="after")
+    def _sizes(self) -> Frame:
+        h, w = self.rgb.shape[:2]
+        if self.depth.shape != (h, w):
+            raise ValueError(f"depth shape {self.depth.shape} differs from rgb {(h, w)}")
+        if (self.intrinsics.width, self.intrinsics.height) != (w, h):
+            raise ValueError(
+                f"intrinsics are for {self.intrinsics.width}x{self.intrinsics.height}, image is {w}x{h}"
+            )
+        if self.instances is not None and self.instances.shape != (h, w):
+            raise ValueError(f"instances shape {self.instances.shape} differs from rgb {(h, w)}")
+        return self
+
+    def depth_m(self) -> Annotated[np.ndarray, "(H, W) float32 metres"]:
+        return self.depth.astype(np.float32) / np.float32(self.depth_scale)
+
+
+@register
+class EndOfSequence(Message):
+    """Sent by the source after the last frame of a sequence."""
+
+    frames_published: int = Field(ge=0)
+    """Frames put on the wire."""
+    frames_dropped: int = Field(ge=0)
+    """Frames dropped in live mode because a subscriber lagged."""
+    last_frame_index: int = Field(ge=-1)
+    """Index of the last frame published, -1 if none."""
+
+
+class TrackObservation(Message):
+    """What eq. 6 needs to weigh one track's mask in this frame."""
+
+    track_id: int = Field(ge=0)
+    """Source-track id, as in ``track_ids``."""
+    keyframe: bool
+    """True if this mask is a keyframe detection (gamma = 1 in eq. 6)."""
+    frames_since_keyframe: int = Field(ge=0)
+    """Delta_t(tau): frames since the last keyframe detection assigned to the track."""
+
+
+@register
+class TrackedFrame(Message):
+    """A frame with its per-pixel source-track ids (``tracks/frame``)."""
+
+    frame: Frame
+    """The observation itself."""
+    track_ids: Labels
+    """(H, W) int32 source-track id per pixel, -1 for none."""
+    tracks: list[TrackObservation]
+    """One entry per track id present in ``track_ids``."""
+    keyframe: bool = False
+    """True if this frame was a keyframe."""
+
+    @model_validator(mode="after")
+    def _consistent(self) -> TrackedFrame:
+        if self.track_ids.shape != self.frame.depth.shape:
+            raise ValueError(f"track_ids shape {self.track_ids.shape} differs from the frame {self.frame.depth.shape}")
+        ids = [t.track_id for t in self.tracks]
+        if len(ids) != len(set(ids)):
+            raise ValueError("tracks lists a track id twice")
+        return self

@@ -1,0 +1,168 @@
+"""Scene-graph deltas and snapshots (``graph/delta``, ``graph/snapshot``)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from shared.arrays import ArraySpec
+from shared.messages.base import Message, register
+from shared.messages.keyframes import FeatureRows, Vector
+
+Vec3 = Annotated[np.ndarray, ArraySpec(("float64",), (3,), finite=True)]
+Vertices = Annotated[np.ndarray, ArraySpec(("float32",), (None, 3), finite=True)]
+Colors = Annotated[np.ndarray, ArraySpec(("uint8",), (None, 3))]
+Faces = Annotated[np.ndarray, ArraySpec(("int32",), (None, 3))]
+VertexIds = Annotated[np.ndarray, ArraySpec(("int32",), (None,))]
+
+
+class SegmentNode(Message):
+    """A persistent class-agnostic 3D segment (III-A's N_S)."""
+
+    id: int = Field(ge=0)
+    """Segment id, stable for the life of the map."""
+    centroid: Vec3
+    """Centroid of its vertices (m, world)."""
+    bbox_min: Vec3
+    """Axis-aligned box corner (m, world)."""
+    bbox_max: Vec3
+    """Axis-aligned box corner (m, world)."""
+    tracks: list[int]
+    """Source tracks assigned to the segment (T)."""
+    dino: Vector
+    """Aggregated DINOv3 feature."""
+    gallery: FeatureRows
+    """(T', D) CLIP gallery, one row per track with a CLIP feature (III-F)."""
+    gallery_tracks: list[int]
+    """Track id of each gallery row."""
+    active: bool
+    """Active (in the window) or historical."""
+    room: int | None = None
+    """Room the segment lies in, if known."""
+    num_vertices: int = Field(0, ge=0)
+    """Mesh vertices assigned to the segment."""
+
+    @model_validator(mode="after")
+    def _gallery(self) -> SegmentNode:
+        if self.gallery.shape[0] != len(self.gallery_tracks):
+            raise ValueError(f"gallery has {self.gallery.shape[0]} rows for {len(self.gallery_tracks)} tracks")
+        if not set(self.gallery_tracks) <= set(self.tracks):
+            raise ValueError("gallery_tracks must be a subset of tracks")
+        if np.any(self.bbox_min > self.bbox_max):
+            raise ValueError("bbox_min exceeds bbox_max")
+        return self
+
+
+class PlaceNode(Message):
+    """A sparse free-space place."""
+
+    id: int = Field(ge=0)
+    """Place id."""
+    position: Vec3
+    """Position (m, world)."""
+    radius: float = Field(ge=0)
+    """Distance to the nearest obstacle (m)."""
+    room: int | None = None
+    """Room containing the place."""
+
+
+class RoomNode(Message):
+    """A room: a region of free space."""
+
+    id: int = Field(ge=0)
+    """Room id."""
+    centroid: Vec3
+    """Centroid of its places (m, world)."""
+    name: str = ""
+    """Optional label."""
+
+
+class Edge(Message):
+    """An edge between two nodes of the hierarchy."""
+
+    kind: Literal["segment_place", "place_place", "place_room", "room_building"]
+    """Which layers it joins."""
+    source: int = Field(ge=0)
+    """Lower-layer node id."""
+    target: int = Field(ge=0)
+    """Upper-layer (or same-layer) node id."""
+
+
+class MeshChunk(Message):
+    """Mesh of the active window with each vertex's winning segment."""
+
+    vertices: Vertices
+    """(V, 3) float32 positions."""
+    colors: Colors
+    """(V, 3) uint8 colours."""
+    faces: Faces
+    """(F, 3) int32 vertex indices."""
+    segment_ids: VertexIds
+    """(V,) int32 segment id per vertex, -1 for none."""
+
+    @model_validator(mode="after")
+    def _sizes(self) -> MeshChunk:
+        v = self.vertices.shape[0]
+        if self.colors.shape[0] != v or self.segment_ids.shape[0] != v:
+            raise ValueError("colors and segment_ids need one row per vertex")
+        if self.faces.size and (self.faces.min() < 0 or self.faces.max() >= v):
+            raise ValueError(f"faces index outside 0..{v - 1}")
+        return self
+
+
+@register
+class GraphDelta(Message):
+    """Changes since graph_seq - 1. A receiver that sees a gap asks for a snapshot."""
+
+    graph_seq: int = Field(ge=0)
+    """Graph version after applying this delta."""
+    frame_index: int = Field(ge=-1)
+    """Last frame fused into this version."""
+    segments: list[SegmentNode] = Field(default_factory=list)
+    """Segments added or changed."""
+    removed_segments: list[int] = Field(default_factory=list)
+    """Segments removed (merged by re-identification)."""
+    places: list[PlaceNode] = Field(default_factory=list)
+    """Places added or changed."""
+    removed_places: list[int] = Field(default_factory=list)
+    """Places removed."""
+    rooms: list[RoomNode] = Field(default_factory=list)
+    """Rooms added or changed."""
+    removed_rooms: list[int] = Field(default_factory=list)
+    """Rooms removed."""
+    edges: list[Edge] = Field(default_factory=list)
+    """Edges added."""
+    removed_edges: list[Edge] = Field(default_factory=list)
+    """Edges removed."""
+    mesh: MeshChunk | None = None
+    """The active-window mesh, in every Nth delta."""
+
+
+@register
+class GraphSnapshot(Message):
+    """The whole graph at one version (reply of the ``graph/snapshot`` queryable)."""
+
+    graph_seq: int = Field(ge=0)
+    """Graph version."""
+    frame_index: int = Field(ge=-1)
+    """Last frame fused."""
+    segments: list[SegmentNode] = Field(default_factory=list)
+    """All segments."""
+    places: list[PlaceNode] = Field(default_factory=list)
+    """All places."""
+    rooms: list[RoomNode] = Field(default_factory=list)
+    """All rooms."""
+    edges: list[Edge] = Field(default_factory=list)
+    """All edges."""
+    mesh: MeshChunk | None = None
+    """The mesh, if asked for."""
+
+
+@register
+class SnapshotRequest(Message):
+    """Request of the ``graph/snapshot`` queryable."""
+
+    with_mesh: bool = False
+    """Include the mesh (large)."""

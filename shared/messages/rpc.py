@@ -1,0 +1,105 @@
+"""Request/reply messages: embeddings (``vl/embed``) and retrieval (``query``)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from shared.arrays import ArraySpec
+from shared.messages.base import Message, register
+from shared.messages.frames import RGB
+from shared.messages.graph import Vec3
+from shared.messages.keyframes import Vector
+
+
+def _one_of_text_or_image(text: str | None, image: np.ndarray | None) -> None:
+    if (text is None) == (image is None):
+        raise ValueError("give exactly one of text or image")
+    if text is not None and not text.strip():
+        raise ValueError("text is empty")
+    if image is not None and (image.shape[0] == 0 or image.shape[1] == 0):
+        raise ValueError(f"image has no pixels (shape {image.shape})")
+
+@register
+class EmbedRequest(Message):
+    """Embed a text or an image in the VL encoder's space."""
+
+    text: str | None = None
+    """A text prompt."""
+    image: RGB | None = None
+    """(H, W, 3) uint8 image."""
+
+    @model_validator(mode="after")
+    def _one(self) -> EmbedRequest:
+        _one_of_text_or_image(self.text, self.image)
+        return self
+
+@register
+class EmbedReply(Message):
+    """The embedding, or an error."""
+
+    embedding: Vector | None = None
+    """(D,) L2-normalised feature."""
+    model: str = ""
+    """Encoder name."""
+    error: str | None = None
+    """Why no embedding was made."""
+
+@register
+class QueryRequest(Message):
+    """Find segments by text or image (eq. 10)."""
+
+    text: str | None = None
+    """Text query, e.g. "red armchair"."""
+    image: RGB | None = None
+    """Image query."""
+    top_k: int | None = Field(None, ge=1)
+    """Results wanted; the service caps it."""
+    room: int | None = None
+    """Only segments in this room."""
+    center: Vec3 | None = None
+    """With radius: only segments whose centroid lies within radius of this point."""
+    radius: float | None = Field(None, gt=0)
+    """Radius around center (m)."""
+    gallery: Literal["max", "mean"] | None = None
+    """Override the service's gallery scoring."""
+
+    @model_validator(mode="after")
+    def _valid(self) -> QueryRequest:
+        _one_of_text_or_image(self.text, self.image)
+        if (self.center is None) != (self.radius is None):
+            raise ValueError("center and radius go together")
+        return self
+
+class QueryHit(Message):
+    """One ranked segment."""
+
+    segment: int
+    """Segment id."""
+    score: float
+    """Eq. 10 score."""
+    centroid: Vec3
+    """Centroid (m, world)."""
+    bbox_min: Vec3
+    """Box corner."""
+    bbox_max: Vec3
+    """Box corner."""
+    room: int | None = None
+    """Room id."""
+    best_track: int | None = None
+    """Gallery track that gave the score."""
+
+@register
+class QueryReply(Message):
+    """Ranked segments, or an error."""
+
+    hits: list[QueryHit] = Field(default_factory=list)
+    """Best first."""
+    graph_seq: int = Field(-1, ge=-1)
+    """Graph version the answer comes from."""
+    error: str | None = None
+    """Why the query was refused."""
+
+QueryEmbedding = Annotated[np.ndarray, ArraySpec(("float32",), (None,), finite=True)]

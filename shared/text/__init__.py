@@ -1,0 +1,2 @@
+"""Text encoders that embed prompts and queries (used by the simulated VL backend and by
+evaluation)."""

@@ -1,0 +1,94 @@
+"""Every Zenoh key expression of the system, built from the robot id (DESIGN.md section 2)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from shared.config.root import ROBOT_ID
+
+PREFIX = "trackgraph"
+
+SERVICES = ("source", "tracker", "keyframe_vl", "fusion", "query", "viewer")
+"""Services that announce themselves with a liveliness token."""
+
+
+@dataclass(frozen=True)
+class Topics:
+    """Key expressions under ``trackgraph/<robot_id>/``."""
+
+    robot_id: str
+
+    def __post_init__(self) -> None:
+        if not ROBOT_ID.match(self.robot_id):
+            raise ValueError(f"robot id {self.robot_id!r} must be letters, digits, '_' or '-'")
+
+    @property
+    def root(self) -> str:
+        return f"{PREFIX}/{self.robot_id}"
+
+    @property
+    def frames(self) -> str:
+        return f"{self.root}/frames"
+
+    @property
+    def end_of_sequence(self) -> str:
+        return f"{self.root}/frames/end"
+
+    @property
+    def keyframe_request(self) -> str:
+        return f"{self.root}/keyframe/request"
+
+    @property
+    def keyframe_masks(self) -> str:
+        return f"{self.root}/keyframe/masks"
+
+    @property
+    def keyframe_features(self) -> str:
+        return f"{self.root}/keyframe/features"
+
+    @property
+    def tracks_frame(self) -> str:
+        return f"{self.root}/tracks/frame"
+
+    @property
+    def tracks_features(self) -> str:
+        return f"{self.root}/tracks/features"
+
+    @property
+    def graph_delta(self) -> str:
+        return f"{self.root}/graph/delta"
+
+    @property
+    def graph_snapshot(self) -> str:
+        return f"{self.root}/graph/snapshot"
+
+    @property
+    def vl_embed(self) -> str:
+        return f"{self.root}/vl/embed"
+
+    @property
+    def query(self) -> str:
+        return f"{self.root}/query"
+
+    def alive(self, service: str) -> str:
+        """Liveliness token key of one service."""
+        if service not in SERVICES:
+            raise ValueError(f"unknown service {service!r}; expected one of {', '.join(SERVICES)}")
+        return f"{self.root}/alive/{service}"
+
+    @property
+    def alive_all(self) -> str:
+        return f"{self.root}/alive/*"
+
+    def all_keys(self) -> dict[str, str]:
+        """Name -> key of every data key (for docs, ACL files and fuzz tests)."""
+        names = (
+            "frames", "end_of_sequence", "keyframe_request", "keyframe_masks", "keyframe_features",
+            "tracks_frame", "tracks_features", "graph_delta", "graph_snapshot", "vl_embed", "query",
+        )  # fmt: skip
+        return {n: getattr(self, n) for n in names}
+
+
+def service_of_alive_key(key: str) -> str:
+    """The service name at the end of an ``alive/<service>`` key."""
+    return key.rsplit("/", 1)[-1]
