@@ -91,6 +91,24 @@ def _cmd_source(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_map(args: argparse.Namespace) -> int:
+    from services.mapping import run_map
+
+    cfg = _load_or_default(args.config)
+    summary = run_map(
+        args.sequence, cfg, args.out, dataset=args.dataset, save_tracks=args.save_tracks,
+        stride=args.stride, max_frames=args.max_frames, progress=not args.json,
+    )  # fmt: skip
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(
+            f"mapped {summary['frames']} frames in {summary['seconds']:.1f} s ({summary['hz']:.2f} Hz), "
+            f"{summary['segments']} segments, peak RSS {summary['peak_rss_mb']:.0f} MB -> {args.out}"
+        )
+    return 0
+
+
 def _print_metrics(result: dict, as_json: bool, keys: list[str]) -> None:
     if as_json:
         print(json.dumps(result))
@@ -133,6 +151,60 @@ def _cmd_eval_tracking(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_eval_segmenter(args: argparse.Namespace) -> int:
+    from services.keyframe_vl.evaluate import eval_segmenter
+
+    result = eval_segmenter(args.seq, _load_or_default(args.config), every=args.every)
+    if not args.json:
+        result = {k: v for k, v in result.items() if k != "per_keyframe"}
+    _print_metrics(result, args.json, ["mean_best_iou", "objects", "keyframes", "ms_per_keyframe"])
+    return 0
+
+
+def _cmd_models_check(args: argparse.Namespace) -> int:
+    from services.models.check import check_models
+
+    result = check_models(_load_or_default(args.config), load=not args.no_load)
+    if args.json:
+        print(json.dumps(result))
+    else:
+        if not result["models"]:
+            print("this config needs no weight files")
+        for m in result["models"]:
+            state = "ok" if m["loads"] else ("present" if m["present"] and m["loads"] is None else "MISSING" if not m["present"] else "FAILS")
+            print(f"{m['role']:<15} {m['backend']:<13} {state:<8} {m['path']}")
+            if m["error"]:
+                print(f"{'':<15} {m['error']}")
+            if not m["present"]:
+                print(f"{'':<15} get it: {m['source']}")
+    return 0 if result["ok"] else 1
+
+
+def _cmd_export_onnx(args: argparse.Namespace) -> int:
+    from services.models.export import export_all
+
+    only = set(args.only) if args.only else None
+    for role, path in export_all(_load_or_default(args.config), args.out, only).items():
+        print(f"{role}: {path}")
+    return 0
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    from services.serve import serve
+
+    cfg = _load_or_default(args.config)
+    if args.connect:
+        data = cfg.model_dump()
+        data["transport"]["connect"] = args.connect
+        cfg = type(cfg).model_validate(data)
+    if args.sequence is not None:
+        from services.mapping import prepare_config
+
+        cfg = prepare_config(cfg, args.sequence)
+    serve(args.service, cfg, out=args.out, resume=args.resume, exit_at_end=args.exit_at_end)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="trackgraph", description=__doc__.splitlines()[0])
     p.add_argument("-v", "--verbose", action="count", default=0, help="debug logging")
@@ -165,6 +237,17 @@ def build_parser() -> argparse.ArgumentParser:
     so.add_argument("--json", action="store_true")
     so.set_defaults(func=_cmd_source)
 
+    mp = sub.add_parser("map", help="map a recorded sequence in-process (no Zenoh)")
+    mp.add_argument("sequence", type=Path, metavar="SEQ_DIR")
+    mp.add_argument("--config", type=Path, metavar="FILE", help="system config (default: the paper's settings)")
+    mp.add_argument("--out", type=Path, required=True, metavar="MAP_DIR")
+    mp.add_argument("--dataset", choices=["replica", "scannetpp", "hm3d", "tum", "rosbag"])
+    mp.add_argument("--save-tracks", action="store_true", help="write per-frame track maps for eval tracking")
+    mp.add_argument("--stride", type=int, metavar="N")
+    mp.add_argument("--max-frames", type=int, metavar="N")
+    mp.add_argument("--json", action="store_true", help='print {"frames", "seconds", "hz", "peak_rss_mb", "segments"}')
+    mp.set_defaults(func=_cmd_map)
+
     ev = sub.add_parser("eval", help="evaluate maps, tracks and masks against ground truth")
     evsub = ev.add_subparsers(dest="eval_command", required=True, metavar="WHAT")
     ol = evsub.add_parser("openlex3d", help="OpenLex3D top-N categories and retrieval AP")
@@ -184,6 +267,37 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--gt", type=Path, required=True, metavar="SEQ_DIR")
     tr.add_argument("--json", action="store_true")
     tr.set_defaults(func=_cmd_eval_tracking)
+
+    sg = evsub.add_parser("segmenter", help="per-keyframe mask quality against ground-truth instances")
+    sg.add_argument("--seq", type=Path, required=True, metavar="SEQ_DIR")
+    sg.add_argument("--config", type=Path, metavar="FILE")
+    sg.add_argument("--every", type=int, metavar="N", help="segment every Nth frame (default K_f)")
+    sg.add_argument("--json", action="store_true", help='print {"mean_best_iou", "objects", ...}')
+    sg.set_defaults(func=_cmd_eval_segmenter)
+
+    mo = sub.add_parser("models", help="weight files a config needs")
+    mosub = mo.add_subparsers(dest="models_command", required=True, metavar="ACTION")
+    mc = mosub.add_parser("check", help="which weight files the config needs, whether present and loadable, where to get them")
+    mc.add_argument("--config", type=Path, metavar="FILE")
+    mc.add_argument("--no-load", action="store_true", help="only check that the files exist")
+    mc.add_argument("--json", action="store_true", help='print {"ok", "missing": [...], "models": [...]}')
+    mc.set_defaults(func=_cmd_models_check)
+
+    ex = sub.add_parser("export-onnx", help="export the configured FastSAM, CLIP and DINOv3 to ONNX")
+    ex.add_argument("--config", type=Path, required=True, metavar="FILE")
+    ex.add_argument("--out", type=Path, required=True, metavar="DIR")
+    ex.add_argument("--only", action="append", choices=["segmenter", "vl_encoder", "dense_features"])
+    ex.set_defaults(func=_cmd_export_onnx)
+
+    sv = sub.add_parser("serve", help="run one service as this process, until Ctrl-C")
+    sv.add_argument("service", choices=["keyframe_vl", "tracker", "fusion"])
+    sv.add_argument("--config", type=Path, metavar="FILE")
+    sv.add_argument("--connect", action="append", metavar="ENDPOINT", help="router endpoint(s)")
+    sv.add_argument("--out", type=Path, metavar="MAP_DIR", help="fusion: where snapshots and the final map go")
+    sv.add_argument("--resume", action="store_true", help="fusion: continue from the last snapshot in MAP_DIR")
+    sv.add_argument("--exit-at-end", action="store_true", help="fusion: stop once the replayed sequence is mapped")
+    sv.add_argument("--sequence", type=Path, metavar="SEQ_DIR", help="a synthetic sequence whose ground truth the simulated backends use")
+    sv.set_defaults(func=_cmd_serve)
 
     c = sub.add_parser("config", help="inspect and validate config files")
     csub = c.add_subparsers(dest="config_command", required=True, metavar="ACTION")

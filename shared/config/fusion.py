@@ -34,6 +34,11 @@ class TSDFConfig(StrictModel):
     least two frames, which drops single-frame depth noise."""
     active_window_m: float = Field(8.0, gt=0)
     """Radius of the active window around the pose (III-A); blocks outside are archived."""
+    restore_archived: bool = False
+    """False (the paper, as Hydra): a revisit reconstructs the surface afresh with new
+    hypotheses, and long-term re-identification (III-E) merges the segments; a block archived
+    again replaces its older archived copy. True brings archived blocks back into the active
+    TSDF instead, hypotheses included."""
 
     @model_validator(mode="after")
     def _depth_range(self) -> TSDFConfig:
@@ -89,8 +94,9 @@ class GraphConfig(StrictModel):
 
     place_spacing_m: float = Field(0.5, gt=0)
     """Spacing of sparse free-space place nodes."""
-    room_erosion_m: float = Field(0.4, ge=0)
-    """Erosion of free space that separates rooms at doorways."""
+    room_erosion_m: float = Field(0.5, ge=0)
+    """Erosion of free space that separates rooms at doorways: it disconnects openings up
+    to about twice this wide (1 m doors at 0.5)."""
     min_room_area_m2: float = Field(2.0, ge=0)
     """Free-space components smaller than this are not rooms."""
 

@@ -77,7 +77,15 @@ class TrackerConfig(StrictModel):
     keyframe_timeout_s: float = Field(5.0, gt=0)
     """Masks not back after this long count as lost; the tracker keeps propagating and
     retries at the next keyframe."""
+    wait_for_masks: bool = False
+    """Hold each keyframe until its masks arrive (up to ``keyframe_timeout_s``) before
+    emitting it: lossless replay then gives the in-process result. False never waits, as a
+    live robot should: the keyframe goes out propagated and is corrected on arrival."""
     history_frames: int = Field(48, ge=1)
     """Recent feature maps kept to re-propagate when keyframe masks arrive late."""
+    oracle_retire_frames: int = Field(30, ge=0)
+    """ground_truth mode only: an object unseen for this many frames gets a new track id when
+    it comes back, as a real tracker retires tracks that leave the view (III-B), so long-term
+    re-identification has revisits to merge. 0 keeps one id per object for ever."""
     device: Literal["auto", "cpu", "cuda"] = "auto"
     """Torch device; auto takes CUDA when present."""

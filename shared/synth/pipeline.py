@@ -84,10 +84,15 @@ def generate(config: SynthConfig | str, seed: int, out_dir: str | Path, *, overw
         # Sampled before rendering so each frame can mark the points it sees (see groundtruth).
         cloud = groundtruth.sample_cloud(world, {o.id for o in world.objects}, cfg.gt.point_spacing, seed, rc.textures)
         observed = np.zeros(len(cloud.points), bool)
+        # Points grouped by object, so each frame projects only the objects its pixels show.
+        by_object = np.argsort(cloud.labels, kind="stable")
+        bounds = np.searchsorted(cloud.labels[by_object], np.arange(len(world.objects) + 1))
 
         def one(i: int) -> tuple[np.ndarray, np.ndarray]:
             fr = renderer.render(traj.poses[i], np.random.default_rng([seed, 11, i]))
-            seen = groundtruth.observed_in(cloud.points, fr.depth, K, traj.poses[i])
+            shown = np.unique(fr.instances[fr.instances >= 0])
+            cand = np.concatenate([by_object[bounds[o]:bounds[o + 1]] for o in shown]) if len(shown) else np.zeros(0, np.int64)
+            seen = cand[groundtruth.observed_in(cloud.points[cand], fr.depth, K, traj.poses[i])]
             depth_u16 = writer.depth_units(fr.depth, rc.depth_scale)
             inst_u16 = (fr.instances + 1).astype(np.uint16)
             writer.write_bytes(staging / "results" / f"frame{i:06d}.jpg", writer.jpeg(fr.rgb, rc.jpeg_quality))

@@ -1,0 +1,205 @@
+"""The fusion core: tracked frames in, scene-graph deltas out. No Zenoh here.
+
+Per frame it fuses depth, colour and source-track masks into the hypothesis TSDF (III-C,
+eqs. 5-6) and moves the active window (III-A). Every ``mesh_every_n_frames`` frames it runs
+marching cubes, the segment updater and re-identification (III-D, III-E), rebuilds places
+and rooms, and returns the resulting :class:`GraphDelta`.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Annotated, Any
+
+import numpy as np
+
+from services.fusion.graph import SceneGraph
+from services.fusion.hypotheses import confidence
+from services.fusion.rooms import HierarchyBuilder
+from services.fusion.segments import SegmentLayer
+from services.fusion.tsdf import HypothesisTSDF
+from services.fusion.types import HypothesisMesh, TrackState
+from shared.config.fusion import FusionConfig
+from shared.messages.frames import TrackedFrame
+from shared.messages.graph import GraphDelta, GraphSnapshot, MeshChunk
+from shared.messages.keyframes import TrackFeatures
+
+log = logging.getLogger(__name__)
+
+SURFACE_CELL_M = 0.05
+"""Resolution of the whole-map surface sample that places and rooms are built from."""
+
+
+class FusionCore:
+    """TSDF, segments and the hierarchy for one robot's map."""
+
+    def __init__(self, cfg: FusionConfig, device: str = "auto") -> None:
+        self.cfg = cfg
+        self.tsdf = HypothesisTSDF(cfg.tsdf, device=device, mesh_weight_threshold=cfg.tsdf.mesh_min_weight)
+        self.segments = SegmentLayer(cfg.segments, cfg.reid)
+        self.hierarchy = HierarchyBuilder(cfg.graph)
+        self.graph = SceneGraph()
+        self.tracks: dict[int, TrackState] = {}
+        self.trajectory: list[np.ndarray] = []
+        self.surface: dict[tuple[int, int, int], np.ndarray] = {}
+        self.frames = 0
+        self.updates = 0
+        self.last_frame_index = -1
+        self.mesh: HypothesisMesh | None = None
+
+    # ------------------------------------------------------------------ inputs
+
+    def add_frame(self, tf: TrackedFrame) -> GraphDelta | None:
+        """Fuse one tracked frame; every N frames also update the graph and return its delta."""
+        fr = tf.frame
+        tsdf = self.cfg.tsdf
+        gamma = {o.track_id: confidence(o.keyframe, o.frames_since_keyframe, tsdf.alpha_p, tsdf.beta_p) for o in tf.tracks}
+        stats = self.tsdf.integrate(fr.depth_m(), fr.rgb, fr.intrinsics, fr.T_world_cam, tf.track_ids, gamma)
+        for tid, w in stats.displaced.items():
+            self._track(tid).displaced_weight += float(w)
+        for o in tf.tracks:
+            self._track(o.track_id)
+        position = fr.T_world_cam[:3, 3].copy()
+        self.tsdf.update_window(position)
+        self.trajectory.append(position)
+        self.frames += 1
+        self.last_frame_index = fr.frame_index
+        if self.frames % self.cfg.mesh_every_n_frames == 0:
+            return self.update()
+        return None
+
+    def add_track_features(self, msg: TrackFeatures) -> None:
+        """Track features from the tracker (aggregated DINOv3 and CLIP, eq. 4)."""
+        for f in msg.tracks:
+            st = self._track(f.track_id)
+            st.dino = np.asarray(f.dino, np.float32)
+            st.clip = None if f.clip is None else np.asarray(f.clip, np.float32)
+            st.clip_count = f.clip_count
+        for tid in msg.retired:
+            self._track(tid).retired = True
+
+    def _track(self, tid: int) -> TrackState:
+        st = self.tracks.get(tid)
+        if st is None:
+            st = self.tracks[tid] = TrackState(track_id=tid)
+        return st
+
+    # ------------------------------------------------------------------ graph
+
+    def update(self) -> GraphDelta:
+        """Mesh, segments, re-identification, places and rooms; the delta to the last version."""
+        mesh = self.tsdf.extract_mesh()
+        self.mesh = mesh
+        center = self.trajectory[-1] if self.trajectory else np.zeros(3)
+        changes = self.segments.update(mesh, self.tracks, window=(center, self.cfg.tsdf.active_window_m))
+        self._add_surface(mesh.vertices)
+        places = rooms = None
+        points = self.surface_points()
+        if len(points) and len(self.trajectory):
+            try:
+                h = self.hierarchy.build(points, np.stack(self.trajectory))
+                places, rooms = h.places, h.rooms
+            except ValueError as exc:
+                # Too little of the floor is mapped yet to find free space; keep the last layers.
+                log.debug("places and rooms not rebuilt: %s", exc)
+        ids = sorted(set(changes.added) | set(changes.changed))
+        self.updates += 1
+        with_mesh = self.updates % self.cfg.mesh_delta_every_n_updates == 0
+        return self.graph.apply_update(
+            segments_changed=self.segments.nodes(ids),
+            segments_removed=changes.removed,
+            places=places,
+            rooms=rooms,
+            mesh=self.mesh_chunk() if with_mesh else None,
+            frame_index=self.last_frame_index,
+        )
+
+    def finish(self) -> GraphDelta:
+        """A last update after the final frame, so nothing fused is left out of the graph."""
+        return self.update()
+
+    def mesh_chunk(self) -> MeshChunk:
+        mesh = self.mesh if self.mesh is not None else HypothesisMesh.empty(self.cfg.tsdf.hypotheses)
+        seg = self.segments.vertex_segments() if len(mesh) else np.zeros(0, np.int32)
+        return MeshChunk(vertices=mesh.vertices, colors=mesh.colors, faces=mesh.faces, segment_ids=seg.astype(np.int32))
+
+    def snapshot(self, with_mesh: bool = False) -> GraphSnapshot:
+        return self.graph.snapshot(with_mesh=with_mesh)
+
+    def _add_surface(self, vertices: Annotated[np.ndarray, "(V, 3) float32"]) -> None:
+        """Keep one point per 5 cm cell of everything ever meshed: places and rooms must cover
+        the whole map, not only the active window."""
+        if len(vertices) == 0:
+            return
+        cells = np.floor(vertices / SURFACE_CELL_M).astype(np.int64)
+        _, first = np.unique(cells, axis=0, return_index=True)
+        for k in first:
+            self.surface.setdefault(tuple(cells[k]), vertices[k])
+
+    def surface_points(self) -> Annotated[np.ndarray, "(N, 3) float32"]:
+        if not self.surface:
+            return np.zeros((0, 3), np.float32)
+        return np.stack(list(self.surface.values())).astype(np.float32)
+
+    # ------------------------------------------------------------------ persistence
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to resume mapping (the graph itself is saved as a snapshot)."""
+        tracks = sorted(self.tracks)
+        dino_dim = next((len(t.dino) for t in self.tracks.values() if t.dino is not None), 0)
+        clip_dim = next((len(t.clip) for t in self.tracks.values() if t.clip is not None), 0)
+        return {
+            "tsdf": self.tsdf.state_dict(),
+            "segments": _segments_tree(self.segments.state_dict()),
+            "tracks": {
+                "ids": np.asarray(tracks, np.int64),
+                "dino": np.stack([self.tracks[t].dino if self.tracks[t].dino is not None else np.zeros(dino_dim, np.float32) for t in tracks]) if tracks else np.zeros((0, dino_dim), np.float32),
+                "has_dino": np.asarray([self.tracks[t].dino is not None for t in tracks], bool),
+                "clip": np.stack([self.tracks[t].clip if self.tracks[t].clip is not None else np.zeros(clip_dim, np.float32) for t in tracks]) if tracks else np.zeros((0, clip_dim), np.float32),
+                "clip_count": np.asarray([self.tracks[t].clip_count for t in tracks], np.int64),
+                "displaced": np.asarray([self.tracks[t].displaced_weight for t in tracks], np.float64),
+                "retired": np.asarray([self.tracks[t].retired for t in tracks], bool),
+            },
+            "trajectory": np.stack(self.trajectory) if self.trajectory else np.zeros((0, 3)),
+            "surface": self.surface_points(),
+            "counters": np.asarray([self.frames, self.updates, self.last_frame_index], np.int64),
+        }
+
+    def load_state_dict(self, state: dict[str, Any], snapshot: GraphSnapshot) -> None:
+        """Resume from :meth:`state_dict` and the graph snapshot saved with it."""
+        self.tsdf.load_state_dict(state["tsdf"])
+        self.segments.load_state_dict(_segments_untree(state["segments"]))
+        t = state["tracks"]
+        self.tracks = {}
+        for k, tid in enumerate(np.asarray(t["ids"]).tolist()):
+            self.tracks[tid] = TrackState(
+                track_id=tid,
+                dino=np.asarray(t["dino"][k], np.float32) if t["has_dino"][k] else None,
+                clip=np.asarray(t["clip"][k], np.float32) if t["clip_count"][k] > 0 else None,
+                clip_count=int(t["clip_count"][k]),
+                displaced_weight=float(t["displaced"][k]),
+                retired=bool(t["retired"][k]),
+            )
+        self.trajectory = [np.asarray(p, np.float64) for p in np.asarray(state["trajectory"]).reshape(-1, 3)]
+        self.surface = {}
+        self._add_surface(np.asarray(state["surface"], np.float32).reshape(-1, 3))
+        self.frames, self.updates, self.last_frame_index = (int(x) for x in np.asarray(state["counters"]))
+        self.graph = SceneGraph.from_snapshot(snapshot)
+        self.hierarchy.restore(snapshot.places, snapshot.rooms)
+        self.mesh = None
+
+
+def _segments_tree(state: dict[str, Any]) -> dict[str, Any]:
+    """The segment layer's list of segments as a dict keyed by position: the map store keeps
+    nested dicts of arrays, not lists."""
+    out = dict(state)
+    out["segments"] = {f"{i:06d}": seg for i, seg in enumerate(state["segments"])}
+    return out
+
+
+def _segments_untree(state: dict[str, Any]) -> dict[str, Any]:
+    out = dict(state)
+    segs = state["segments"]
+    out["segments"] = [segs[k] for k in sorted(segs)] if isinstance(segs, dict) else list(segs)
+    out["format"] = state["format"].item() if isinstance(state["format"], np.ndarray) else state["format"]
+    return out

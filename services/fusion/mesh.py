@@ -1,0 +1,140 @@
+"""Marching cubes of the active grid with the per-voxel hypotheses moved onto the vertices (III-C).
+
+Open3D's ``extract_triangle_mesh`` interpolates positions and colours but carries no custom
+attribute, so each vertex takes the hypotheses of its nearest voxel: a vertex lies on the edge
+between two voxels, and the nearer of the two is ``round(p / voxel_size)``, the same rule the
+pixel vote uses for surface points (:mod:`services.fusion.hypotheses`). Colours are Open3D's,
+interpolated along the edge from the same voxel colours.
+
+Open3D's vertex order follows its hash-map buffer layout and thread scheduling, which a saved
+and reloaded grid does not reproduce. Vertices are therefore sorted by position and faces by
+their (rotated) indices, so equal grids give equal meshes, on any run and after a reload.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+import numpy as np
+
+from services.fusion.types import HypothesisMesh
+
+
+def voxel_flat_index(
+    vbg: Any,
+    points: Annotated[np.ndarray, "(N, 3) float world metres"],
+    voxel_size: float,
+    res: int,
+) -> Annotated[np.ndarray, "(N,) int64 index into (capacity * res^3) attribute rows, -1 = none"]:
+    """Flat attribute row of the voxel nearest to each point (hash-map lookup of its block)."""
+    o3c = _o3c()
+    if len(points) == 0:
+        return np.zeros(0, np.int64)
+    ivox = np.floor(np.asarray(points, np.float64) * (1.0 / voxel_size) + 0.5).astype(np.int64)
+    blk = np.floor_divide(ivox, res)
+    loc = ivox - blk * res
+    hm = vbg.hashmap()
+    dev = hm.key_tensor().device
+    buf, found = hm.find(o3c.Tensor(blk.astype(np.int32)).to(dev))
+    buf = buf.cpu().numpy().astype(np.int64)
+    found = found.cpu().numpy()
+    flat = buf * res**3 + (loc[:, 2] * res + loc[:, 1]) * res + loc[:, 0]
+    return np.where(found, flat, -1)
+
+
+def attribute_array(vbg: Any, name: str) -> Any:
+    """Attribute ``name`` as (capacity, res, res, res, C), zero-copy: a numpy view on CPU, a
+    torch tensor (DLPack) on CUDA. Open3D's own tensor indexing is about 60x slower than
+    either on CPU. Re-read it after the grid grows, which reallocates."""
+    t = vbg.attribute(name)
+    if t.device.get_type() == _o3c().Device.DeviceType.CPU:
+        return t.numpy()
+    from torch.utils.dlpack import from_dlpack
+
+    return from_dlpack(t.to_dlpack())
+
+
+def index_like(arr: Any, idx: Annotated[np.ndarray, "(N,) int64"]) -> Any:
+    """``idx`` as an index for ``arr`` (numpy as is, a torch tensor on the array's device)."""
+    if isinstance(arr, np.ndarray):
+        return idx
+    import torch
+
+    return torch.from_numpy(np.ascontiguousarray(idx, np.int64)).to(arr.device)
+
+
+def like(arr: Any, value: np.ndarray) -> Any:
+    """Host array ``value`` where ``arr`` lives (itself for numpy, a device copy for torch)."""
+    if isinstance(arr, np.ndarray):
+        return value
+    import torch
+
+    return torch.from_numpy(np.ascontiguousarray(value)).to(arr.device)
+
+
+def to_host(x: Any) -> np.ndarray:
+    return x if isinstance(x, np.ndarray) else x.cpu().numpy()
+
+
+def gather_rows(
+    vbg: Any, name: str, flat: Annotated[np.ndarray, "(N,) int64, -1 = none"], fill: float
+) -> Annotated[np.ndarray, "(N, C) host copy"]:
+    """Rows ``flat`` of attribute ``name`` viewed as (capacity * res^3, C); ``fill`` where -1."""
+    arr = attribute_array(vbg, name)
+    rows = arr.reshape(-1, arr.shape[-1])
+    ok = flat >= 0
+    got = to_host(rows[index_like(rows, np.where(ok, flat, 0))])
+    got[~ok] = fill
+    return got
+
+
+def canonical_order(
+    vertices: Annotated[np.ndarray, "(V, 3) float32"], faces: Annotated[np.ndarray, "(F, 3) int"]
+) -> tuple[
+    Annotated[np.ndarray, "(V,) int64 new -> old vertex"], Annotated[np.ndarray, "(F, 3) int32"]
+]:
+    """A vertex order by position (x, then y, then z) and the faces renumbered, each rotated to
+    start at its smallest index (winding kept) and sorted."""
+    perm = np.lexsort((vertices[:, 2], vertices[:, 1], vertices[:, 0]))
+    inv = np.empty(len(perm), np.int64)
+    inv[perm] = np.arange(len(perm))
+    f = inv[faces]
+    shift = np.argmin(f, axis=1)
+    cols = (shift[:, None] + np.arange(3)[None, :]) % 3
+    f = np.take_along_axis(f, cols, axis=1)
+    f = f[np.lexsort((f[:, 2], f[:, 1], f[:, 0]))]
+    return perm, f.astype(np.int32)
+
+
+def extract_hypothesis_mesh(
+    vbg: Any, voxel_size: float, res: int, k: int, weight_threshold: float
+) -> HypothesisMesh:
+    """Marching cubes over every block of ``vbg`` with vertex colours and hypotheses."""
+    if vbg.hashmap().size() == 0:  # Open3D raises on an empty grid
+        return HypothesisMesh.empty(k)
+    mesh = vbg.extract_triangle_mesh(weight_threshold=weight_threshold).cpu()
+    if "positions" not in mesh.vertex or mesh.vertex.positions.shape[0] == 0:
+        return HypothesisMesh.empty(k)
+    pos = mesh.vertex.positions.numpy().astype(np.float32)
+    faces = (
+        mesh.triangle.indices.numpy() if "indices" in mesh.triangle else np.zeros((0, 3), np.int64)
+    )
+    if "colors" in mesh.vertex:
+        col = np.clip(np.rint(mesh.vertex.colors.numpy() * 255.0), 0, 255).astype(np.uint8)
+    else:
+        col = np.zeros((len(pos), 3), np.uint8)
+    perm, faces = canonical_order(pos, faces)
+    pos, col = pos[perm], col[perm]
+    flat = voxel_flat_index(vbg, pos, voxel_size, res)
+    codes = gather_rows(vbg, "hyp_id", flat, 0).astype(np.int32)
+    weights = gather_rows(vbg, "hyp_w", flat, 0.0).astype(np.float32)
+    return HypothesisMesh(
+        vertices=np.ascontiguousarray(pos), colors=np.ascontiguousarray(col), faces=faces,
+        hyp_ids=codes - 1, hyp_weights=weights,
+    )  # fmt: skip
+
+
+def _o3c() -> Any:
+    from shared.o3d import import_open3d
+
+    return import_open3d().core

@@ -1,0 +1,637 @@
+"""The 3D segment layer: persistent class-agnostic segments built from source tracks (paper III-D),
+with long-term re-identification of revisited segments (III-E) and CLIP galleries (III-F).
+
+Each update takes the marching-cubes mesh of the active window with its per-vertex hypotheses
+H = {(tau_k, l_k)} and the latest state of every source track, and
+
+1. gives each track that wins at least ``min_vertices`` vertices and has no segment yet a
+   segment: an active segment it overlaps (eq. 7 and the DINOv3 gate) or a new one;
+2. re-assigns the window's vertices to segments by their winning track tau*, keeping the
+   geometry a segment had outside the current mesh (see ``SegmentLayer`` on archived geometry);
+3. refreshes each segment's bounds, aggregated DINOv3 feature and CLIP gallery;
+4. merges active segments into matching historical ones (eqs. 8-9).
+
+Decisions the paper leaves open, made here:
+
+- *Track weight in a segment* (``Segment.track_weight``): the hypothesis weight the track holds
+  on the latest mesh it appeared in, summed over every slot (not only where it wins), plus its
+  ``TrackState.displaced_weight``. III-C says displaced hypotheses are still accumulated into
+  segments; the weight a track lost to slot replacement is evidence for it that the bounded
+  voxel state could not keep, so it counts as if it were still on the mesh. A track that left
+  the window keeps its last mesh weight, so its past support is not forgotten.
+- *Aggregated DINOv3 feature*: the unit-normalised, track-weight-weighted mean of the unit
+  DINOv3 features of the segment's tracks. Weighting by evidence lets the tracks that explain
+  most of the surface, seen most confidently, dominate its appearance.
+- *Tracks without a DINOv3 feature yet* (track features arrive asynchronously) are left
+  unassigned until one arrives: creating a segment for them would skip the appearance gate and
+  leave duplicates that the active-window matching never revisits.
+- *Retired tracks* are still assigned: retirement stops propagation in 2D, but the geometry
+  already fused for the track still needs a segment.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Annotated
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from services.fusion.gallery import (
+    Gallery,
+    gallery_from_state,
+    gallery_rows,
+    gallery_state,
+    sync_gallery,
+)
+from services.fusion.reid import ReidMatch, best_match, unit, within
+from services.fusion.types import HypothesisMesh, TrackState
+from shared.config.fusion import ReidConfig, SegmentsConfig
+from shared.messages.graph import SegmentNode
+
+log = logging.getLogger(__name__)
+
+Window = tuple[Annotated[np.ndarray, "(3,) float world metres, centre"], float]
+"""The active window as (centre, radius in metres)."""
+
+STATE_FORMAT = 1
+
+
+def _no_positions() -> np.ndarray:
+    return np.zeros((0, 3), np.float32)
+
+
+def _no_vertices() -> np.ndarray:
+    return np.zeros(0, np.int32)
+
+
+@dataclass
+class Segment:
+    """A 3D segment node N_S = {B, p_S, T, f^dino, F^ov, s} (III-A)."""
+
+    id: int
+    tracks: set[int]
+    """T, the source tracks assigned to the segment."""
+    dino: Annotated[np.ndarray, "(D,) float32 unit"]
+    """f^dino, aggregated as described in the module docstring."""
+    positions: Annotated[np.ndarray, "(P, 3) float32 world metres"] = field(
+        default_factory=_no_positions
+    )
+    """Every vertex connected to the segment: its latest-mesh vertices (``vertex_ids``) and those
+    kept from earlier meshes that the latest mesh no longer covers (they left the window).
+    Historical segments keep theirs: it is what re-identification compares a revisit against."""
+    vertex_ids: Annotated[np.ndarray, "(n,) int32 indices into the latest mesh"] = field(
+        default_factory=_no_vertices
+    )
+    """Latest-mesh vertices whose winning track belongs to the segment; empty when historical."""
+    active: bool = True
+    """s: True while at least one of its vertices is on the latest mesh (the active window)."""
+    gallery: Gallery = field(default_factory=dict)
+    """F^ov: track id -> that track's running-mean CLIP feature (eq. 4), kept in sync."""
+    track_dino: dict[int, np.ndarray] = field(default_factory=dict)
+    """Last known unit DINOv3 feature of each track, so forgotten tracks still count."""
+    track_mesh_weight: dict[int, float] = field(default_factory=dict)
+    """Hypothesis weight of each track on the latest mesh it appeared in."""
+    track_displaced: dict[int, float] = field(default_factory=dict)
+    """Last reported ``TrackState.displaced_weight`` of each track."""
+    bbox_min: Annotated[np.ndarray, "(3,) float64"] = field(default_factory=lambda: np.zeros(3))
+    bbox_max: Annotated[np.ndarray, "(3,) float64"] = field(default_factory=lambda: np.zeros(3))
+    centroid: Annotated[np.ndarray, "(3,) float64"] = field(default_factory=lambda: np.zeros(3))
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.positions.shape[0])
+
+    def track_weight(self, tid: int) -> float:
+        """Weight of track ``tid`` in the segment's statistics: mesh weight + displaced weight."""
+        return self.track_mesh_weight.get(tid, 0.0) + self.track_displaced.get(tid, 0.0)
+
+    def refresh_bounds(self) -> None:
+        if self.num_vertices == 0:
+            return
+        p = self.positions.astype(np.float64)
+        self.bbox_min = p.min(axis=0)
+        self.bbox_max = p.max(axis=0)
+        self.centroid = p.mean(axis=0)
+
+    def summary(self) -> tuple:
+        """What ``to_node`` reports of the geometry and state: equal summaries, same node."""
+        return (
+            self.active, self.num_vertices,
+            self.bbox_min.tobytes(), self.bbox_max.tobytes(), self.centroid.tobytes(),
+        )  # fmt: skip
+
+    def refresh_dino(self) -> bool:
+        """Recompute the aggregated DINOv3 feature; True if it changed."""
+        tids = sorted(t for t in self.tracks if t in self.track_dino)
+        if not tids:
+            return False
+        feats = np.stack([self.track_dino[t] for t in tids]).astype(np.float64)
+        w = np.array([max(self.track_weight(t), 0.0) for t in tids])
+        if w.sum() <= 0:
+            # No evidence yet (e.g. only zero-weight hypotheses): every view counts the same.
+            w = np.ones(len(tids))
+        agg = unit(w @ feats)
+        if not np.any(agg):
+            # Opposite features cancelled out; the best-supported track is the least arbitrary.
+            agg = unit(feats[int(np.argmax(w))])
+        new = agg.astype(np.float32)
+        if self.dino.shape == new.shape and np.array_equal(self.dino, new):
+            return False
+        self.dino = new
+        return True
+
+    def to_node(self, room: int | None = None) -> SegmentNode:
+        """The wire form (``graph/delta`` and snapshots)."""
+        rows, ids = gallery_rows(self.gallery)
+        return SegmentNode(
+            id=self.id,
+            centroid=np.asarray(self.centroid, np.float64),
+            bbox_min=np.asarray(self.bbox_min, np.float64),
+            bbox_max=np.asarray(self.bbox_max, np.float64),
+            tracks=sorted(self.tracks),
+            dino=np.asarray(self.dino, np.float32),
+            gallery=rows,
+            gallery_tracks=ids,
+            active=self.active,
+            room=room,
+            num_vertices=self.num_vertices,
+        )
+
+    def state(self) -> dict:
+        return {
+            "id": self.id,
+            "tracks": sorted(self.tracks),
+            "dino": self.dino.copy(),
+            "positions": self.positions.copy(),
+            "vertex_ids": self.vertex_ids.copy(),
+            "active": self.active,
+            "gallery": gallery_state(self.gallery),
+            "track_dino": gallery_state(self.track_dino),
+            "track_mesh_weight": _weights_state(self.track_mesh_weight),
+            "track_displaced": _weights_state(self.track_displaced),
+            "bbox_min": self.bbox_min.copy(),
+            "bbox_max": self.bbox_max.copy(),
+            "centroid": self.centroid.copy(),
+        }
+
+    @staticmethod
+    def from_state(s: Mapping) -> Segment:
+        return Segment(
+            id=int(s["id"]),
+            tracks={int(t) for t in s["tracks"]},
+            dino=np.array(s["dino"], np.float32),
+            positions=np.array(s["positions"], np.float32).reshape(-1, 3),
+            vertex_ids=np.array(s["vertex_ids"], np.int32),
+            active=bool(s["active"]),
+            gallery=gallery_from_state(s["gallery"]),
+            track_dino=gallery_from_state(s["track_dino"]),
+            track_mesh_weight=_weights_from_state(s["track_mesh_weight"]),
+            track_displaced=_weights_from_state(s["track_displaced"]),
+            bbox_min=np.array(s["bbox_min"], np.float64),
+            bbox_max=np.array(s["bbox_max"], np.float64),
+            centroid=np.array(s["centroid"], np.float64),
+        )
+
+
+def _weights_state(w: Mapping[int, float]) -> dict:
+    ids = sorted(w)
+    return {"tracks": ids, "values": [float(w[t]) for t in ids]}
+
+
+def _weights_from_state(s: Mapping) -> dict[int, float]:
+    return {int(t): float(v) for t, v in zip(s["tracks"], s["values"], strict=True)}
+
+
+@dataclass
+class SegmentChanges:
+    """What one ``SegmentLayer.update`` did, by segment id (each list ascending)."""
+
+    added: list[int] = field(default_factory=list)
+    """Created in this update (and not merged away in it)."""
+    changed: list[int] = field(default_factory=list)
+    """Existing before this update and different in anything ``to_node`` reports."""
+    removed: list[int] = field(default_factory=list)
+    """Existing before this update and merged into a historical segment by re-identification."""
+    merged: dict[int, int] = field(default_factory=dict)
+    """query id -> historical id it was merged into (including queries created in this update),
+    so the graph can redirect the query's edges."""
+
+
+class _Incidence:
+    """The (vertex, track) hypothesis incidence of one mesh, in compact track indices.
+
+    Tracks are numbered 0..T-1 in ascending id order; pairs are sorted by (track, vertex), so
+    each track's vertices are one contiguous, ascending slice (a CSR of track -> vertices).
+    """
+
+    def __init__(self, mesh: HypothesisMesh) -> None:
+        hyp = mesh.hyp_ids
+        rows, cols = np.nonzero(hyp >= 0)
+        ids = hyp[rows, cols].astype(np.int64)
+        weights = mesh.hyp_weights[rows, cols].astype(np.float64)
+        self._lut: np.ndarray | None = None
+        if ids.size and int(ids.max()) < 4 * ids.size + 65536:
+            # Track ids are small counters: a lookup table compacts them without sorting.
+            present = np.zeros(int(ids.max()) + 1, bool)
+            present[ids] = True
+            self.track_ids = np.flatnonzero(present)
+            self._lut = np.where(present, np.cumsum(present, dtype=np.int64) - 1, -1)
+            tc = self._lut[ids]
+        else:
+            self.track_ids, tc = np.unique(ids, return_inverse=True)
+            tc = tc.reshape(-1)
+        t = len(self.track_ids)
+        # np.nonzero yields rows ascending, so a stable sort by track leaves each track's
+        # vertices ascending; 16-bit keys get numpy's linear-time radix sort.
+        order = np.argsort(tc.astype(np.uint16) if t <= 65536 else tc, kind="stable")
+        pt, pv, pw = tc[order], rows[order], weights[order]
+        dup = (pt[1:] == pt[:-1]) & (pv[1:] == pv[:-1])
+        if dup.any():
+            # A voxel listed a track twice: one pair, with the weights added.
+            first = np.concatenate([[True], ~dup])
+            pw = np.bincount(np.cumsum(first) - 1, pw)
+            pt, pv = pt[first], pv[first]
+        self.pair_vertex = pv
+        self.starts = np.searchsorted(pt, np.arange(t + 1))
+        self.weight = np.bincount(pt, pw, t)
+        self.hyp_c = self.compact(hyp).astype(np.int32)
+        self.winner = self.compact(mesh.winners())
+        self.wins = np.bincount(self.winner[self.winner >= 0], minlength=t)
+        self.index = {int(tid): i for i, tid in enumerate(self.track_ids)}
+
+    def compact(self, ids: np.ndarray) -> np.ndarray:
+        """Track ids (any shape, -1 = none) to compact indices (-1 = none or not on this mesh)."""
+        ids = np.asarray(ids, np.int64)
+        if len(self.track_ids) == 0:
+            return np.full(ids.shape, -1, np.int64)
+        if self._lut is not None:
+            inside = (ids >= 0) & (ids < len(self._lut))
+            return np.where(inside, self._lut[np.clip(ids, 0, len(self._lut) - 1)], -1)
+        c = np.minimum(np.searchsorted(self.track_ids, ids), len(self.track_ids) - 1)
+        return np.where((ids >= 0) & (self.track_ids[c] == ids), c, -1)
+
+    def vertices_of(self, c: int) -> Annotated[np.ndarray, "(n,) int64 ascending"]:
+        return self.pair_vertex[self.starts[c] : self.starts[c + 1]]
+
+
+class _MeshCover:
+    """Which stored vertices the latest mesh has re-observed, and so replaces.
+
+    A stored vertex within ``radius`` of a vertex of the latest mesh lies on a surface the mesh
+    reconstructs again, where the latest winners are authoritative; one farther away is
+    archived geometry (it left the window) and is kept. When the caller names the window, a
+    stored vertex inside it that the mesh no longer covers was carved away, and is dropped too.
+    """
+
+    def __init__(self, mesh: HypothesisMesh, radius: float, window: Window | None) -> None:
+        self.vertices = mesh.vertices
+        self.radius = radius
+        self.window = window
+        self._tree: cKDTree | None = None
+
+    def keep(
+        self, points: Annotated[np.ndarray, "(N, 3) float"]
+    ) -> Annotated[np.ndarray, "(N,) bool"]:
+        if len(points) == 0 or len(self.vertices) == 0:
+            keep = np.ones(len(points), bool)
+        else:
+            if self._tree is None:
+                # Built once per update and thrown away: a cheap, unbalanced build pays off.
+                self._tree = cKDTree(
+                    np.asarray(self.vertices, np.float64), balanced_tree=False, compact_nodes=False
+                )
+            keep = ~within(points, self._tree, self.radius)
+        if self.window is not None and len(points):
+            centre, radius = self.window
+            d = np.linalg.norm(points - np.asarray(centre, np.float64)[None, :], axis=1)
+            keep &= d > radius
+        return keep
+
+
+class SegmentLayer:
+    """The segment layer N_S of the scene graph, updated from each active-window mesh.
+
+    Re-identification queries every active segment on every update: a segment that was small
+    or far from any historical one at creation may grow onto a revisited surface later. This
+    stays cheap because the centroid k-d tree limits each query to H_q, the cosine gate runs
+    before the vertex overlap, and a historical segment's vertex k-d tree is built once and
+    kept while it stays historical (its geometry is frozen).
+
+    On a merge (III-E) the query's tracks, gallery rows, per-track features and vertices move
+    into the historical segment, which becomes active; the historical segment's own stored
+    vertices that the current mesh re-observes are replaced by the query's, as the paper's
+    "becomes active again with the newly reconstructed geometry". Several queries may merge
+    into one historical segment in the same update: each picks its best candidate among the
+    segments historical before the update's merges, so the outcome does not depend on order.
+
+    Geometry outside the window: ``positions`` keeps a segment's vertices that the latest mesh
+    does not cover (``_MeshCover``), so a segment straddling or leaving the window keeps its full
+    extent for its box, centroid and re-identification. Coverage uses ``ReidConfig.r_nn``, the
+    paper's own radius for "the same surface" (eq. 8).
+    """
+
+    def __init__(self, seg_cfg: SegmentsConfig, reid_cfg: ReidConfig) -> None:
+        self.seg_cfg = seg_cfg
+        self.reid_cfg = reid_cfg
+        self.segments: dict[int, Segment] = {}
+        self._track_segment: dict[int, int] = {}
+        self._next_id = 0
+        self._vertex_segments = np.zeros(0, np.int32)
+        self._hist_trees: dict[int, cKDTree] = {}
+
+    # -- queries ------------------------------------------------------------------------------
+
+    def segment_of_track(self, track_id: int) -> int | None:
+        """The segment a track is assigned to, if any."""
+        return self._track_segment.get(int(track_id))
+
+    def vertex_segments(
+        self,
+    ) -> Annotated[np.ndarray, "(V,) int32 segment id per latest-mesh vertex, -1 = none"]:
+        """Segment of each vertex of the latest mesh (``MeshChunk.segment_ids``)."""
+        return self._vertex_segments.copy()
+
+    def nodes(self, ids: list[int] | None = None) -> list[SegmentNode]:
+        """Wire form of the given segments (all when None), in ascending id order."""
+        keys = sorted(self.segments) if ids is None else sorted(ids)
+        return [self.segments[i].to_node() for i in keys]
+
+    # -- update -------------------------------------------------------------------------------
+
+    def update(
+        self,
+        mesh: HypothesisMesh,
+        tracks: Mapping[int, TrackState],
+        *,
+        window: Window | None = None,
+    ) -> SegmentChanges:
+        """Fold the latest active-window mesh and track states into the layer (III-D, III-E).
+
+        ``window``, when given, lets stored geometry inside the window that the mesh no longer
+        has be dropped (a carved-away surface); without it such geometry is kept.
+        """
+        inc = _Incidence(mesh)
+        cover = _MeshCover(mesh, self.reid_cfg.r_nn, window)
+        added: list[int] = []
+        dirty: set[int] = set()
+        self._assign_new_tracks(inc, tracks, added, dirty)
+        self._refresh_geometry(mesh, inc, cover, dirty)
+        self._refresh_features(inc, tracks, dirty)
+        changes = SegmentChanges()
+        if self.reid_cfg.enabled:
+            for m in self._reidentify(cover, dirty):
+                changes.merged[m.query] = m.target
+        gone = set(changes.merged)
+        changes.added = sorted(set(added) - gone)
+        changes.removed = sorted(gone - set(added))
+        changes.changed = sorted(dirty - set(added) - gone)
+        if changes.added or changes.removed or changes.merged:
+            log.debug(
+                "segments: %d added, %d changed, %d merged by re-identification (%d total)",
+                len(changes.added), len(changes.changed), len(changes.merged), len(self.segments),
+            )  # fmt: skip
+        return changes
+
+    def _assign_new_tracks(
+        self, inc: _Incidence, tracks: Mapping[int, TrackState], added: list[int], dirty: set[int]
+    ) -> None:
+        """III-D: attach each unassigned track with enough winning vertices to a segment."""
+        seg_of = np.array([self._track_segment.get(int(t), -1) for t in inc.track_ids], np.int64)
+        # Active = some track of the segment still wins a vertex of this mesh (the window).
+        active_now = {int(s) for s in np.unique(seg_of[(inc.wins > 0) & (seg_of >= 0)])}
+        sizes: dict[int, int] = {}
+        pending = np.nonzero((seg_of < 0) & (inc.wins >= self.seg_cfg.min_vertices))[0]
+        # Best-supported tracks first, so a fragment is matched to the segment of the bulk
+        # rather than seeding its own.
+        for c in sorted(pending.tolist(), key=lambda c: (-int(inc.wins[c]), int(inc.track_ids[c]))):
+            tid = int(inc.track_ids[c])
+            state = tracks.get(tid)
+            if state is None or state.dino is None:
+                log.debug("track %d has %d vertices but no DINOv3 feature yet", tid, inc.wins[c])
+                continue
+            dino = unit(state.dino).astype(np.float32)
+            sid = self._match(c, dino, inc, seg_of, active_now, sizes)
+            if sid is None:
+                sid = self._next_id
+                self._next_id += 1
+                self.segments[sid] = Segment(id=sid, tracks={tid}, dino=dino)
+                added.append(sid)
+                active_now.add(sid)
+                log.debug("track %d starts segment %d", tid, sid)
+            else:
+                self.segments[sid].tracks.add(tid)
+                dirty.add(sid)
+                log.debug("track %d joins segment %d", tid, sid)
+            sizes.pop(sid, None)
+            seg_of[c] = sid
+            self._track_segment[tid] = sid
+            # Later tracks of this update are compared with the grown segment's appearance.
+            self._refresh_segment_features(self.segments[sid], inc, tracks)
+
+    def _match(
+        self,
+        c: int,
+        dino: np.ndarray,
+        inc: _Incidence,
+        seg_of: np.ndarray,
+        active_now: set[int],
+        sizes: dict[int, int],
+    ) -> int | None:
+        """The active segment track ``c`` belongs to under eq. 7 and the DINOv3 gate, or None."""
+        vq = inc.vertices_of(c)
+        cq = inc.hyp_c[vq]
+        segs = np.where(cq >= 0, seg_of[np.maximum(cq, 0)], -1)
+        # A vertex counts once per segment even if several of the segment's tracks are on it.
+        segs.sort(axis=1)
+        segs[:, 1:][segs[:, 1:] == segs[:, :-1]] = -1
+        ids, shared = np.unique(segs[segs >= 0], return_counts=True)
+        theta = self.seg_cfg.theta_rho
+        best_key: tuple | None = None
+        best: int | None = None
+        for sid, n in zip(ids.tolist(), shared.tolist(), strict=True):
+            if n < self.seg_cfg.min_shared or sid not in active_now:
+                continue
+            if sid not in sizes:
+                sizes[sid] = self._hypothesis_support(sid, inc)
+            rho_q, rho_i = n / len(vq), n / sizes[sid]
+            if rho_q < theta and rho_i < theta:
+                continue
+            sim = float(unit(dino) @ unit(self.segments[sid].dino))
+            if sim < self.seg_cfg.theta_sim:
+                continue
+            # Mutual overlap (a near-duplicate) beats containment (over-segmentation), then the
+            # shared vertex count, then appearance; the smaller id settles exact ties.
+            key = (rho_q >= theta and rho_i >= theta, n, sim, -sid)
+            if best_key is None or key > best_key:
+                best_key, best = key, sid
+        return best
+
+    def _hypothesis_support(self, sid: int, inc: _Incidence) -> int:
+        """|V_i|: vertices of this mesh holding a hypothesis of any track of segment ``sid``."""
+        cs = [inc.index[t] for t in self.segments[sid].tracks if t in inc.index]
+        if len(cs) == 1:
+            return len(inc.vertices_of(cs[0]))
+        return int(np.unique(np.concatenate([inc.vertices_of(c) for c in cs])).size) if cs else 0
+
+    def _refresh_geometry(
+        self, mesh: HypothesisMesh, inc: _Incidence, cover: _MeshCover, dirty: set[int]
+    ) -> None:
+        """Re-assign the mesh's vertices by winning track; set active/historical."""
+        seg_of = np.array([self._track_segment.get(int(t), -1) for t in inc.track_ids], np.int64)
+        # Group vertices by segment through compact segment keys, so the sort is a radix sort.
+        seg_ids, seg_key = np.unique(seg_of[seg_of >= 0], return_inverse=True)
+        key_of = np.full(len(seg_of), len(seg_ids), np.int64)
+        key_of[seg_of >= 0] = seg_key
+        vkey = np.where(
+            inc.winner >= 0, key_of[np.maximum(inc.winner, 0)] if len(key_of) else 0, len(seg_ids)
+        )
+        self._vertex_segments = np.append(seg_ids, -1).astype(np.int32)[vkey]
+        order = np.argsort(vkey.astype(np.uint16) if len(seg_ids) < 65536 else vkey, kind="stable")
+        bounds_v = np.searchsorted(vkey[order], np.arange(len(seg_ids) + 1))
+        current = {
+            # A stable sort leaves each group's vertex indices ascending.
+            int(sid): order[bounds_v[k] : bounds_v[k + 1]].astype(np.int32)
+            for k, sid in enumerate(seg_ids)
+            if bounds_v[k + 1] > bounds_v[k]
+        }
+        # One coverage query for all stored geometry of the segments seen on this mesh.
+        seen = sorted(current)
+        stored = [self.segments[s].positions for s in seen]
+        keep_all = cover.keep(np.concatenate(stored)) if seen else np.zeros(0, bool)
+        bounds = np.cumsum([0] + [len(p) for p in stored])
+        for k, sid in enumerate(seen):
+            seg = self.segments[sid]
+            kept = seg.positions[keep_all[bounds[k] : bounds[k + 1]]]
+            before = seg.summary()
+            seg.positions = np.concatenate([kept, mesh.vertices[current[sid]].astype(np.float32)])
+            seg.vertex_ids = current[sid]
+            seg.active = True
+            seg.refresh_bounds()
+            if seg.summary() != before:
+                dirty.add(sid)
+            self._hist_trees.pop(sid, None)
+        for sid, seg in self.segments.items():
+            if sid not in current and seg.active:
+                # Its stored geometry stays as it was last seen: that is what a revisit is
+                # compared against.
+                seg.active = False
+                seg.vertex_ids = _no_vertices()
+                dirty.add(sid)
+                log.debug("segment %d is historical", sid)
+
+    def _refresh_features(
+        self, inc: _Incidence, tracks: Mapping[int, TrackState], dirty: set[int]
+    ) -> None:
+        for sid, seg in self.segments.items():
+            if self._refresh_segment_features(seg, inc, tracks):
+                dirty.add(sid)
+
+    @staticmethod
+    def _refresh_segment_features(
+        seg: Segment, inc: _Incidence, tracks: Mapping[int, TrackState]
+    ) -> bool:
+        """Per-track weights and features, the aggregated DINOv3 feature and the gallery."""
+        for tid in seg.tracks:
+            c = inc.index.get(tid)
+            if c is not None:
+                seg.track_mesh_weight[tid] = float(inc.weight[c])
+            state = tracks.get(tid)
+            if state is None:
+                continue
+            seg.track_displaced[tid] = float(state.displaced_weight)
+            if state.dino is not None:
+                seg.track_dino[tid] = unit(state.dino).astype(np.float32)
+        dino_changed = seg.refresh_dino()
+        gallery_changed = sync_gallery(seg.gallery, seg.tracks, tracks)
+        return dino_changed or gallery_changed
+
+    # -- re-identification (III-E) ------------------------------------------------------------
+
+    def _hist_tree(self, sid: int) -> cKDTree:
+        tree = self._hist_trees.get(sid)
+        if tree is None:
+            tree = cKDTree(self.segments[sid].positions.astype(np.float64))
+            self._hist_trees[sid] = tree
+        return tree
+
+    def _reidentify(self, cover: _MeshCover, dirty: set[int]) -> list[ReidMatch]:
+        hist = sorted(s for s, seg in self.segments.items() if not seg.active and seg.num_vertices)
+        if not hist:
+            return []
+        centroids = cKDTree(np.stack([self.segments[h].centroid for h in hist]))
+        matches: list[ReidMatch] = []
+        for q in sorted(s for s, seg in self.segments.items() if seg.active):
+            seg = self.segments[q]
+            near = centroids.query_ball_point(seg.centroid, r=self.reid_cfg.search_radius_m)
+            if not near:
+                continue
+            m = best_match(
+                q, seg.positions, seg.dino, [hist[i] for i in near],
+                lambda h: self.segments[h].dino, self._hist_tree, self.reid_cfg,
+            )  # fmt: skip
+            if m is not None:
+                matches.append(m)
+        by_target: dict[int, list[ReidMatch]] = {}
+        for m in matches:
+            by_target.setdefault(m.target, []).append(m)
+        for target, ms in sorted(by_target.items()):
+            self._merge(target, [m.query for m in ms], cover)
+            dirty.add(target)
+            for m in ms:
+                dirty.discard(m.query)
+                log.info(
+                    "re-identified segment %d as historical segment %d (o=%.2f cos=%.2f J=%.2f)",
+                    m.query, m.target, m.overlap, m.cosine, m.score,
+                )  # fmt: skip
+        return matches
+
+    def _merge(self, target: int, queries: list[int], cover: _MeshCover) -> None:
+        """Move the queries' tracks, features and vertices into historical segment ``target``."""
+        h = self.segments[target]
+        parts = [h.positions[cover.keep(h.positions)]]
+        vids = [h.vertex_ids]
+        for q in queries:
+            seg = self.segments.pop(q)
+            self._hist_trees.pop(q, None)
+            h.tracks |= seg.tracks
+            h.gallery.update(seg.gallery)
+            h.track_dino.update(seg.track_dino)
+            h.track_mesh_weight.update(seg.track_mesh_weight)
+            h.track_displaced.update(seg.track_displaced)
+            for t in seg.tracks:
+                self._track_segment[t] = target
+            parts.append(seg.positions)
+            vids.append(seg.vertex_ids)
+            self._vertex_segments[self._vertex_segments == q] = target
+        h.positions = np.concatenate(parts)
+        h.vertex_ids = np.sort(np.concatenate(vids)).astype(np.int32)
+        h.active = True
+        h.refresh_bounds()
+        h.refresh_dino()
+        self._hist_trees.pop(target, None)
+
+    # -- save / resume ------------------------------------------------------------------------
+
+    def state_dict(self) -> dict:
+        """Plain python + numpy; ``load_state_dict`` restores the layer exactly."""
+        return {
+            "format": STATE_FORMAT,
+            "next_id": self._next_id,
+            "segments": [self.segments[s].state() for s in sorted(self.segments)],
+            "vertex_segments": self._vertex_segments.copy(),
+        }
+
+    def load_state_dict(self, state: Mapping) -> None:
+        if state.get("format") != STATE_FORMAT:
+            raise ValueError(
+                f"segment layer state format {state.get('format')!r}, expected {STATE_FORMAT}"
+            )
+        segments = [Segment.from_state(s) for s in state["segments"]]
+        self.segments = {s.id: s for s in segments}
+        self._track_segment = {t: s.id for s in segments for t in s.tracks}
+        self._next_id = int(state["next_id"])
+        self._vertex_segments = np.array(state["vertex_segments"], np.int32)
+        self._hist_trees = {}

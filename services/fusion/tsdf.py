@@ -1,0 +1,488 @@
+"""TSDF volume with K source-track hypotheses per voxel, over Open3D's VoxelBlockGrid (III-A, III-C).
+
+The grid holds Open3D's ``tsdf``, ``weight`` and ``color`` plus two extra attributes,
+``hyp_id`` (K int32 track codes, ``track_id + 1``, 0 = empty slot, so the zero memory of a new
+block is a voxel with no hypothesis) and ``hyp_w`` (K float32 accumulated weights l). Each frame:
+
+1. the frame's blocks (``compute_unique_block_coordinates``), restoring any of them that sits in
+   the window archive;
+2. the pixel pass of the hypothesis vote (:mod:`services.fusion.hypotheses`), which validates
+   the track ids before anything changes;
+3. Open3D's plain ``integrate`` (weight 1 per observation: w_TSDF = 1 in eq. 5);
+4. the slot pass: eq. 5 and the slot rule, in place on the grid's memory.
+
+The grid contains only the active window; :meth:`HypothesisTSDF.update_window` moves blocks
+out to and back from a host archive (:mod:`services.fusion.window`). On CUDA the grid lives on
+the GPU and the vote runs in torch on the same memory (DLPack); on CPU it runs in numba.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Annotated, Any
+
+import numpy as np
+
+from services.fusion.hypotheses import (
+    FrameGeometry,
+    NumbaVote,
+    TorchVote,
+    gamma_table,
+    numba_available,
+)
+from services.fusion.mesh import (
+    attribute_array,
+    extract_hypothesis_mesh,
+    gather_rows,
+    index_like,
+    like,
+    to_host,
+    voxel_flat_index,
+)
+from services.fusion.types import HypothesisMesh
+from services.fusion.window import BlockArchive, block_centres, pack_keys
+from shared.config.fusion import TSDFConfig
+from shared.geometry import Intrinsics, Pose, invert, is_rigid
+from shared.o3d import import_open3d
+
+log = logging.getLogger(__name__)
+
+MESH_WEIGHT_THRESHOLD = 1.0
+"""Marching cubes uses voxels with TSDF weight above this: surfaces seen in at least two frames,
+which drops single-frame depth noise."""
+
+STATE_VERSION = 1
+
+
+@dataclass
+class IntegrateStats:
+    frame_blocks: int = 0
+    """Blocks the frame's truncation band touches."""
+    active_blocks: int = 0
+    """Blocks in the grid after integration."""
+    restored_blocks: int = 0
+    """Archived blocks that the frame touched and were brought back first."""
+    pixels_voted: int = 0
+    voxels_voted: int = 0
+    new_hypotheses: int = 0
+    """Hypotheses placed in an empty or replaced slot."""
+    replaced: int = 0
+    """Of those, how many displaced another track."""
+    dropped: int = 0
+    """Newcomers whose voxel's lowest slot went to a stronger newcomer of the same frame."""
+    overflow: int = 0
+    displaced: dict[int, float] = field(default_factory=dict)
+    """Track id -> weight it lost to slot replacement in this frame (III-C, for the segments)."""
+    seconds_tsdf: float = 0.0
+    seconds_hypotheses: float = 0.0
+
+
+@dataclass
+class WindowStats:
+    archived: int
+    restored: int
+    active_blocks: int
+    archived_blocks: int
+
+
+def _resolve_device(device: str) -> str:
+    o3d = import_open3d()
+    d = device.lower()
+    if d == "auto":
+        try:
+            import torch
+
+            torch_cuda = torch.cuda.is_available()
+        except ImportError:
+            torch_cuda = False
+        return "CUDA:0" if o3d.core.cuda.is_available() and torch_cuda else "CPU:0"
+    if d.startswith("cpu"):
+        return "CPU:0"
+    if d.startswith("cuda"):
+        index = d.split(":", 1)[1] if ":" in d else "0"
+        if not o3d.core.cuda.is_available():
+            raise RuntimeError(
+                f"device {device!r}: this open3d build has no CUDA (install `open3d`, not `open3d-cpu`)"
+            )
+        return f"CUDA:{int(index)}"
+    raise ValueError(f"unknown device {device!r}; use 'auto', 'cpu' or 'cuda[:N]'")
+
+
+class HypothesisTSDF:
+    """Active-window TSDF whose voxels keep up to K (track, weight) hypotheses."""
+
+    def __init__(
+        self,
+        cfg: TSDFConfig,
+        device: str = "auto",
+        backend: str = "auto",
+        mesh_weight_threshold: float = MESH_WEIGHT_THRESHOLD,
+    ) -> None:
+        """``device``: 'auto' (CUDA when both open3d and torch have it), 'cpu' or 'cuda[:N]'.
+        ``backend`` of the vote: 'auto' (numba on CPU when installed, else torch), 'numba' or
+        'torch'."""
+        self.cfg = cfg
+        self.mesh_weight_threshold = float(mesh_weight_threshold)
+        self._o3d = import_open3d()
+        self._o3c = self._o3d.core
+        self.device_name = _resolve_device(device)
+        self._dev = self._o3c.Device(self.device_name)
+        on_cuda = self.device_name.startswith("CUDA")
+        if backend == "auto":
+            backend = "numba" if numba_available() and not on_cuda else "torch"
+        if backend == "numba":
+            if on_cuda:
+                raise ValueError("the numba vote runs on CPU; use backend='torch' on CUDA")
+            self._vote: NumbaVote | TorchVote = NumbaVote()
+        elif backend == "torch":
+            if on_cuda:
+                import torch
+
+                if not torch.cuda.is_available():
+                    raise RuntimeError("open3d runs on CUDA but torch has no CUDA for the vote")
+            self._vote = TorchVote(("cuda:" + self.device_name.split(":")[1]) if on_cuda else "cpu")
+        else:
+            raise ValueError(f"unknown backend {backend!r}; use 'auto', 'numba' or 'torch'")
+        self.backend = backend
+        self.res = cfg.block_resolution
+        self.K = cfg.hypotheses
+        self._layout = {
+            "tsdf": (np.float32, 1), "weight": (np.float32, 1), "color": (np.float32, 3),
+            "hyp_id": (np.int32, self.K), "hyp_w": (np.float32, self.K),
+        }  # fmt: skip
+        self.archive = BlockArchive(self._layout, self.res)
+        self.vbg = self._new_grid(cfg.initial_blocks)
+        self.frames = 0
+
+    # ---------------------------------------------------------------------------------------
+    # grid plumbing
+
+    def _new_grid(self, blocks: int) -> Any:
+        o3c = self._o3c
+        dtypes = {np.float32: o3c.float32, np.int32: o3c.int32}
+        names = tuple(self._layout)
+        return self._o3d.t.geometry.VoxelBlockGrid(
+            attr_names=names,
+            attr_dtypes=tuple(dtypes[self._layout[n][0]] for n in names),
+            attr_channels=tuple(self._layout[n][1] for n in names),
+            voxel_size=self.cfg.voxel_size,
+            block_resolution=self.res,
+            block_count=int(blocks),
+            device=self._dev,
+        )
+
+    def _active(
+        self,
+    ) -> tuple[
+        Annotated[np.ndarray, "(N,) int64 buffers"], Annotated[np.ndarray, "(N, 3) int32 keys"]
+    ]:
+        hm = self.vbg.hashmap()
+        bufs = hm.active_buf_indices().cpu().numpy().astype(np.int64)
+        # the whole key table is small (12 bytes a block); Open3D's own indexing is slow on CPU
+        return bufs, hm.key_tensor().cpu().numpy()[bufs]
+
+    def _read_blocks(self, bufs: np.ndarray) -> dict[str, np.ndarray]:
+        out = {}
+        for name in self._layout:
+            arr = attribute_array(self.vbg, name)
+            out[name] = to_host(arr[index_like(arr, bufs.astype(np.int64))])
+        return out
+
+    def _write_blocks(self, keys: np.ndarray, attrs: dict[str, np.ndarray]) -> None:
+        """Insert blocks (new or existing keys) with exactly these voxel arrays."""
+        if len(keys) == 0:
+            return
+        hm = self.vbg.hashmap()
+        kt = self._o3c.Tensor(np.ascontiguousarray(keys, dtype=np.int32)).to(self._dev)
+        hm.activate(kt)
+        # activate reports no buffer for keys already present; find covers both, and runs after
+        # any rehash that activate caused
+        bufs, found = hm.find(kt)
+        if not bool(found.cpu().numpy().all()):
+            raise RuntimeError("voxel block grid refused blocks")
+        bufs = bufs.cpu().numpy().astype(np.int64)
+        for name in self._layout:
+            arr = attribute_array(self.vbg, name)
+            arr[index_like(arr, bufs)] = like(
+                arr, np.asarray(attrs[name], dtype=self._layout[name][0])
+            )
+
+    def _erase_blocks(self, bufs: np.ndarray, keys: np.ndarray) -> None:
+        # Open3D hands a freed buffer to the next new block without clearing it
+        for name in self._layout:
+            arr = attribute_array(self.vbg, name)
+            arr[index_like(arr, bufs.astype(np.int64))] = 0
+        self.vbg.hashmap().erase(
+            self._o3c.Tensor(np.ascontiguousarray(keys, np.int32)).to(self._dev)
+        )
+
+    def _hyp_views(self) -> tuple[Any, Any]:
+        """(capacity * res^3, K) views of hyp_id and hyp_w, re-read each frame because a grid
+        that grows reallocates."""
+        a_id, a_w = self.vbg.attribute("hyp_id"), self.vbg.attribute("hyp_w")
+        if isinstance(self._vote, NumbaVote):
+            return a_id.numpy().reshape(-1, self.K), a_w.numpy().reshape(-1, self.K)
+        from torch.utils.dlpack import from_dlpack
+
+        return (
+            from_dlpack(a_id.to_dlpack()).reshape(-1, self.K),
+            from_dlpack(a_w.to_dlpack()).reshape(-1, self.K),
+        )
+
+    # ---------------------------------------------------------------------------------------
+    # integration
+
+    def integrate(
+        self,
+        depth_m: Annotated[np.ndarray, "(H, W) float32 metres, 0 or NaN = no reading"],
+        rgb: Annotated[np.ndarray, "(H, W, 3) uint8"],
+        K: Intrinsics,
+        T_world_cam: Pose,
+        track_ids: Annotated[np.ndarray, "(H, W) int32 source track per pixel, -1 = none"]
+        | None = None,
+        gamma: dict[int, float] | None = None,
+    ) -> IntegrateStats:
+        """Fuse one frame into the TSDF, then add gamma[tau] (eq. 6) to the hypotheses of the
+        voxels seen inside the mask of each track tau (eq. 5). Every track id in ``track_ids``
+        needs a ``gamma`` entry; a missing one raises ValueError before anything changes."""
+        cfg = self.cfg
+        h, w = depth_m.shape[:2]
+        if (w, h) != (K.width, K.height) or depth_m.ndim != 2:
+            raise ValueError(
+                f"depth {depth_m.shape} does not match intrinsics {K.width}x{K.height}"
+            )
+        if rgb.shape != (h, w, 3) or rgb.dtype != np.uint8:
+            raise ValueError(f"rgb must be ({h}, {w}, 3) uint8, got {rgb.shape} {rgb.dtype}")
+        if track_ids is None:
+            track_ids = np.full((h, w), -1, np.int32)
+        if track_ids.shape != (h, w):
+            raise ValueError(f"track_ids {track_ids.shape} does not match depth {depth_m.shape}")
+        T_world_cam = np.asarray(T_world_cam, np.float64)
+        if not is_rigid(T_world_cam):
+            raise ValueError("T_world_cam is not a rigid transform")
+        gid, gval = gamma_table(gamma or {})
+        track_ids = np.ascontiguousarray(track_ids, dtype=np.int32)
+
+        o3c, o3d = self._o3c, self._o3d
+        t0 = time.perf_counter()
+        depth = np.asarray(depth_m, np.float32)
+        # NaN fails both comparisons, so missing readings become 0 (no reading) here too
+        depth = np.where((depth >= cfg.depth_min) & (depth <= cfg.depth_max), depth, np.float32(0))
+        dimg = o3d.t.geometry.Image(o3c.Tensor.from_numpy(depth).to(self._dev))
+        color = rgb.astype(np.float32) * np.float32(1.0 / 255.0)
+        cimg = o3d.t.geometry.Image(o3c.Tensor.from_numpy(color).to(self._dev))
+        intr = o3c.Tensor(K.matrix(), o3c.float64)
+        extr = o3c.Tensor(invert(T_world_cam), o3c.float64)
+        trunc = float(cfg.trunc_voxels)
+        bc = self._frame_blocks(dimg, intr, extr, depth)
+        bc_np = bc.cpu().numpy().astype(np.int64).reshape(-1, 3)
+        t_tsdf = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        geo = self._frame_geometry(K, T_world_cam, bc_np)
+        passed = self._vote.pixel_pass(depth, track_ids, gid, geo, len(bc_np))
+        # validated: now bring back archived blocks that this frame touches, so none exists twice
+        restored = (
+            self._restore_rows(self.archive.lookup(bc_np))
+            if len(self.archive) and self.cfg.restore_archived
+            else 0
+        )
+        t_hyp = time.perf_counter() - t0
+        if len(bc_np) == 0:  # no valid depth: nothing to fuse
+            self.frames += 1
+            return IntegrateStats(
+                active_blocks=self.active_blocks, seconds_tsdf=t_tsdf, seconds_hypotheses=t_hyp
+            )
+
+        t0 = time.perf_counter()
+        self.vbg.integrate(bc, dimg, cimg, intr, extr, 1.0, cfg.depth_max, trunc)
+        t_tsdf += time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        bufs, found = self.vbg.hashmap().find(bc)
+        if not bool(found.cpu().numpy().all()):
+            raise RuntimeError("integrate left frame blocks unallocated")
+        hyp_id, hyp_w = self._hyp_views()
+        vote = self._vote.slot_pass(
+            passed, gid, gval, bufs.cpu().numpy().astype(np.int64), self.res, hyp_id, hyp_w
+        )
+        t_hyp += time.perf_counter() - t0
+        self.frames += 1
+        stats = IntegrateStats(
+            frame_blocks=len(bc_np), active_blocks=int(self.vbg.hashmap().size()),
+            restored_blocks=restored, pixels_voted=vote.pixels_voted,
+            voxels_voted=vote.voxels_voted, new_hypotheses=vote.new_hypotheses,
+            replaced=vote.replaced, dropped=vote.dropped, overflow=vote.overflow, displaced=vote.displaced,
+            seconds_tsdf=t_tsdf, seconds_hypotheses=t_hyp,
+        )  # fmt: skip
+        if vote.overflow:
+            log.debug(
+                "frame %d: %d (voxel, track) pairs over the per-voxel limit",
+                self.frames,
+                vote.overflow,
+            )
+        return stats
+
+    def _frame_blocks(self, dimg: Any, intr: Any, extr: Any, depth: np.ndarray) -> Any:
+        """Blocks within truncation of the frame's surface points, (B, 3) int32 on the device."""
+        empty = self._o3c.Tensor(np.zeros((0, 3), np.int32)).to(self._dev)
+        if not np.any(depth > 0):
+            return empty
+        try:
+            return self.vbg.compute_unique_block_coordinates(
+                dimg, intr, extr, 1.0, self.cfg.depth_max, float(self.cfg.trunc_voxels)
+            )
+        except RuntimeError as exc:
+            # Open3D samples the depth image with a stride and raises when no sample is valid
+            if "No block is touched" in str(exc):
+                return empty
+            raise
+
+    def _frame_geometry(
+        self, K: Intrinsics, T_world_cam: np.ndarray, bc: np.ndarray
+    ) -> FrameGeometry:
+        """Dense lookup from block key to frame block index over the frame's bounding box of
+        blocks: a few ten thousand cells, far cheaper than a hash lookup per pixel."""
+        if len(bc):
+            bmin = bc.min(axis=0)
+            bext = bc.max(axis=0) - bmin + 1
+            lut = np.full(int(np.prod(bext)), -1, np.int32)
+            off = bc - bmin
+            lut[(off[:, 0] * bext[1] + off[:, 1]) * bext[2] + off[:, 2]] = np.arange(
+                len(bc), dtype=np.int32
+            )
+        else:
+            bmin, bext, lut = np.zeros(3, np.int64), np.zeros(3, np.int64), np.full(1, -1, np.int32)
+        res = self.res
+        return FrameGeometry(
+            R=np.ascontiguousarray(T_world_cam[:3, :3]), t=np.ascontiguousarray(T_world_cam[:3, 3]),
+            xs=(np.arange(K.width, dtype=np.float64) - K.cx) / K.fx,
+            ys=(np.arange(K.height, dtype=np.float64) - K.cy) / K.fy,
+            inv_voxel=1.0 / float(self.cfg.voxel_size), res=res,
+            shift=res.bit_length() - 1 if res & (res - 1) == 0 else -1,
+            bmin=bmin.astype(np.int64), bext=bext.astype(np.int64), lut=lut,
+        )  # fmt: skip
+
+    # ---------------------------------------------------------------------------------------
+    # active window
+
+    def update_window(
+        self, center: Annotated[np.ndarray, "(3,) world metres, e.g. the camera position"]
+    ) -> WindowStats:
+        """Archive blocks whose centre is farther than ``active_window_m`` from ``center`` and
+        bring back archived blocks within it."""
+        center = np.asarray(center, np.float64).reshape(3)
+        radius = self.cfg.active_window_m
+        bufs, keys = self._active()
+        far = (
+            np.linalg.norm(block_centres(keys, self.res, self.cfg.voxel_size) - center, axis=1)
+            > radius
+        )
+        n_out = int(far.sum())
+        if n_out:
+            older = self.archive.lookup(keys[far])
+            if np.any(older >= 0):
+                # a revisit rebuilt these blocks afresh: the newer reconstruction replaces the older
+                self.archive.take(older[older >= 0])
+            self.archive.add(keys[far], self._read_blocks(bufs[far]))
+            self._erase_blocks(bufs[far], keys[far])
+        n_in = (
+            self._restore_rows(self.archive.rows_within(center, radius, self.cfg.voxel_size))
+            if self.cfg.restore_archived
+            else 0
+        )
+        if n_out or n_in:
+            log.debug(
+                "window at %s: archived %d blocks, restored %d", np.round(center, 2), n_out, n_in
+            )
+        return WindowStats(n_out, n_in, int(self.vbg.hashmap().size()), len(self.archive))
+
+    def _restore_rows(
+        self, rows: Annotated[np.ndarray, "(M,) int64 archive rows, -1 = skip"]
+    ) -> int:
+        rows = rows[rows >= 0]
+        if len(rows) == 0:
+            return 0
+        keys, attrs = self.archive.take(rows)
+        self._write_blocks(keys, attrs)
+        return len(keys)
+
+    # ---------------------------------------------------------------------------------------
+    # outputs
+
+    def extract_mesh(self) -> HypothesisMesh:
+        """Marching-cubes mesh of the active window with each vertex's colour and hypotheses."""
+        return extract_hypothesis_mesh(
+            self.vbg, self.cfg.voxel_size, self.res, self.K, self.mesh_weight_threshold
+        )
+
+    def hypotheses_at(
+        self, points: Annotated[np.ndarray, "(N, 3) world metres"]
+    ) -> tuple[
+        Annotated[np.ndarray, "(N, K) int32 track ids, -1 = empty"],
+        Annotated[np.ndarray, "(N, K) float32"],
+    ]:
+        """Hypotheses of the active voxel nearest to each point (empty outside the grid)."""
+        points = np.asarray(points, np.float64).reshape(-1, 3)
+        if len(points) == 0:
+            return np.zeros((0, self.K), np.int32), np.zeros((0, self.K), np.float32)
+        flat = voxel_flat_index(self.vbg, points, self.cfg.voxel_size, self.res)
+        ids = gather_rows(self.vbg, "hyp_id", flat, 0).astype(np.int32) - 1
+        return ids, gather_rows(self.vbg, "hyp_w", flat, 0.0).astype(np.float32)
+
+    @property
+    def active_blocks(self) -> int:
+        return int(self.vbg.hashmap().size())
+
+    @property
+    def archived_blocks(self) -> int:
+        return len(self.archive)
+
+    def nbytes(self) -> dict[str, int]:
+        """Bytes held: the grid's preallocated buffers (on its device) and the host archive."""
+        per_voxel = sum(np.dtype(d).itemsize * c for d, c in self._layout.values())
+        capacity = int(self.vbg.hashmap().capacity())
+        return {"grid": capacity * self.res**3 * per_voxel, "archive": self.archive.nbytes}
+
+    # ---------------------------------------------------------------------------------------
+    # persistence
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        """Plain numpy arrays (``np.savez``-able): active and archived blocks, sorted by key."""
+        bufs, keys = self._active()
+        order = np.argsort(pack_keys(keys), kind="stable")
+        state = {
+            "version": np.int64(STATE_VERSION),
+            "voxel_size": np.float64(self.cfg.voxel_size),
+            "block_resolution": np.int64(self.res),
+            "hypotheses": np.int64(self.K),
+            "frames": np.int64(self.frames),
+            "keys": keys[order].astype(np.int32),
+        }
+        state.update(self._read_blocks(bufs[order]))
+        state.update(self.archive.state_dict())
+        return state
+
+    def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
+        """Replace the whole volume by a :meth:`state_dict`; the layout must match this config."""
+        if int(state["version"]) != STATE_VERSION:
+            raise ValueError(
+                f"TSDF state version {int(state['version'])}, expected {STATE_VERSION}"
+            )
+        mine = (self.cfg.voxel_size, self.res, self.K)
+        theirs = (
+            float(state["voxel_size"]),
+            int(state["block_resolution"]),
+            int(state["hypotheses"]),
+        )
+        if not np.isclose(mine[0], theirs[0]) or mine[1:] != theirs[1:]:
+            raise ValueError(
+                f"TSDF state has (voxel_size, block_resolution, K) = {theirs}, config has {mine}"
+            )
+        keys = np.asarray(state["keys"], np.int32).reshape(-1, 3)
+        self.vbg = self._new_grid(max(self.cfg.initial_blocks, len(keys)))
+        self._write_blocks(keys, {name: state[name] for name in self._layout})
+        self.archive.load_state_dict(state)
+        self.frames = int(state.get("frames", 0))

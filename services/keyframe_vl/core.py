@@ -1,0 +1,83 @@
+"""The keyframe_vl core: masks, then CLIP features, for a keyframe; embeddings for queries.
+
+No Zenoh here. Segmentation and CLIP are separate calls so the node can publish the masks
+as soon as they exist and the features when CLIP is done (the tracker never waits for CLIP).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import OrderedDict
+from typing import Annotated
+
+import numpy as np
+
+from services.keyframe_vl.encoders import make_vl_encoder
+from services.keyframe_vl.segmenters import make_segmenter
+from services.keyframe_vl.types import KeyframeImage, Masks, Segmenter, VLEncoder
+from shared.config.keyframe_vl import KeyframeVLConfig
+from shared.messages.keyframes import KeyframeMasks, KeyframeRequest, MaskFeatures
+from shared.messages.rpc import EmbedReply, EmbedRequest
+
+log = logging.getLogger(__name__)
+
+
+def resolve_device(device: str) -> str:
+    """'auto' becomes 'cuda' when torch sees a GPU, else 'cpu' (torch imported only then)."""
+    if device != "auto":
+        return device
+    try:
+        import torch
+    except ImportError:
+        return "cpu"
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def keyframe_image(req: KeyframeRequest) -> KeyframeImage:
+    depth = None if req.depth is None else req.depth.astype(np.float32) / np.float32(req.depth_scale)
+    return KeyframeImage(frame_index=req.frame_index, rgb=req.rgb, depth_m=depth, intrinsics=req.intrinsics, instances=req.instances)
+
+
+class KeyframeVLCore:
+    """Segmenter and VL encoder built from config (or given, for tests)."""
+
+    def __init__(self, cfg: KeyframeVLConfig, segmenter: Segmenter | None = None, encoder: VLEncoder | None = None) -> None:
+        self.cfg = cfg
+        device = resolve_device(cfg.device)
+        fp16 = cfg.fp16 and device.startswith("cuda")
+        self.segmenter = segmenter or make_segmenter(cfg.segmenter, device=device, fp16=fp16)
+        self.encoder = encoder or make_vl_encoder(cfg.vl, device=device, fp16=fp16)
+        self._text_cache: OrderedDict[str, np.ndarray] = OrderedDict()
+
+    def segment(self, req: KeyframeRequest) -> tuple[KeyframeImage, Masks, KeyframeMasks]:
+        image = keyframe_image(req)
+        masks = self.segmenter.segment(image)
+        msg = KeyframeMasks(frame_index=req.frame_index, masks=masks.masks, boxes=masks.boxes, scores=masks.scores)
+        return image, masks, msg
+
+    def features(self, image: KeyframeImage, masks: Masks) -> MaskFeatures:
+        feats = self.encoder.encode_crops(image, masks) if len(masks) else np.zeros((0, self.encoder.dim), np.float32)
+        return MaskFeatures(frame_index=image.frame_index, features=np.asarray(feats, np.float32), model=self.encoder.name)
+
+    def embed_text(self, text: str) -> Annotated[np.ndarray, "(D,) float32"]:
+        hit = self._text_cache.get(text)
+        if hit is not None:
+            self._text_cache.move_to_end(text)
+            return hit
+        vec = np.asarray(self.encoder.encode_text([text])[0], np.float32)
+        if self.cfg.embed_cache_size:
+            self._text_cache[text] = vec
+            while len(self._text_cache) > self.cfg.embed_cache_size:
+                self._text_cache.popitem(last=False)
+        return vec
+
+    def embed(self, req: EmbedRequest) -> EmbedReply:
+        """Text or image to the encoder's space; failures come back as an error reply."""
+        try:
+            if req.text is not None:
+                vec = self.embed_text(req.text)
+            else:
+                vec = np.asarray(self.encoder.encode_image(req.image), np.float32)
+        except (ValueError, RuntimeError) as exc:
+            return EmbedReply(model=self.encoder.name, error=str(exc))
+        return EmbedReply(embedding=vec, model=self.encoder.name)

@@ -1,0 +1,54 @@
+"""Vision-language encoder backends of keyframe_vl, behind one factory (DESIGN.md section 3).
+
+- ``openclip``: OpenCLIP from a local checkpoint (:mod:`.openclip`);
+- ``clip_onnx``: the same towers exported to ONNX, run by onnxruntime (:mod:`.clip_onnx`);
+- ``simulated``: ground-truth label mixtures in MiniLM text space (:mod:`.simulated`).
+
+Importing this package imports no torch, open_clip, onnxruntime or sentence-transformers;
+each backend imports what it needs when it is made.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from services.keyframe_vl.types import VLEncoder
+from shared.config.keyframe_vl import VLEncoderConfig
+
+log = logging.getLogger(__name__)
+
+BACKENDS = ("openclip", "clip_onnx", "simulated")
+
+__all__ = ["BACKENDS", "make_vl_encoder"]
+
+
+def make_vl_encoder(cfg: VLEncoderConfig, device: str = "cpu", fp16: bool = False) -> VLEncoder:
+    """The encoder ``cfg.backend`` names.
+
+    ``device`` is ``cpu``, ``cuda`` (or ``cuda:N``) or ``auto``; ``fp16`` runs the ``openclip``
+    backend under fp16 autocast on CUDA and is ignored elsewhere. Missing weights raise
+    FileNotFoundError naming the path and where to get them; ``simulated`` without usable
+    ground truth raises FileNotFoundError or ValueError naming the file.
+    """
+    if cfg.backend == "openclip":
+        from services.keyframe_vl.encoders.common import resolve_device
+        from services.keyframe_vl.encoders.openclip import OpenClipEncoder
+
+        return OpenClipEncoder(
+            cfg.model, cfg.weights, device=resolve_device(device), fp16=fp16,
+            crop_padding=cfg.crop_padding, batch_size=cfg.batch_size,
+        )  # fmt: skip
+    if cfg.backend == "clip_onnx":
+        from services.keyframe_vl.encoders.clip_onnx import ClipOnnxEncoder
+
+        return ClipOnnxEncoder(
+            cfg.weights, arch=cfg.model, device=device,
+            crop_padding=cfg.crop_padding, batch_size=cfg.batch_size,
+        )  # fmt: skip
+    if cfg.backend == "simulated":
+        from services.keyframe_vl.encoders.simulated import SimulatedVLEncoder
+
+        # The text encoder stays on the CPU: its embeddings are cached on disk by text, and
+        # a crop costs no network pass at all.
+        return SimulatedVLEncoder(cfg.ground_truth, noise_std=cfg.noise_std)
+    raise ValueError(f"unknown VL encoder backend {cfg.backend!r}; choose one of: {', '.join(BACKENDS)}")

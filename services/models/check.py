@@ -1,0 +1,87 @@
+"""``trackgraph models check``: every weight file a config needs, whether it is present and
+loads, and where to obtain it. Weights are never downloaded by the project."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from shared.config.root import TrackGraphConfig
+
+log = logging.getLogger(__name__)
+
+FASTSAM_SOURCE = (
+    "FastSAM-x.pt from the FastSAM releases (github.com/CASIA-IVA-Lab/FastSAM) or the Ultralytics "
+    "assets release (github.com/ultralytics/assets, FastSAM-x.pt); export ONNX with `trackgraph export-onnx`"
+)
+DINOV3_SOURCE = (
+    "DINOv3 ViT-S+/16 (LVD-1689M) from the Hugging Face repository "
+    "facebook/dinov3-vits16plus-pretrain-lvd1689m (transformers folder, or timm "
+    "vit_small_plus_patch16_dinov3 weights), or the official dinov3 .pth; access must be "
+    "requested on the hub, then copy the files here"
+)
+
+
+@dataclass
+class ModelEntry:
+    role: str
+    backend: str
+    path: str
+    present: bool
+    loads: bool | None
+    error: str | None
+    source: str
+
+
+def needed(cfg: TrackGraphConfig) -> list[tuple[str, str, str, str]]:
+    """(role, backend, path, source) of every weight file the config's backends read."""
+    from services.keyframe_vl.encoders.weights import weights_hint
+
+    out = []
+    seg = cfg.keyframe_vl.segmenter
+    if seg.backend in ("fastsam", "fastsam_onnx"):
+        out.append(("segmenter", seg.backend, seg.weights, FASTSAM_SOURCE))
+    vl = cfg.keyframe_vl.vl
+    if vl.backend in ("openclip", "clip_onnx"):
+        out.append(("vl_encoder", vl.backend, vl.weights, weights_hint(vl.model)))
+    feats = cfg.tracker.features
+    if cfg.tracker.mode != "ground_truth" and feats.backend in ("dinov3", "dinov3_onnx"):
+        out.append(("dense_features", feats.backend, feats.weights, DINOV3_SOURCE))
+    return out
+
+
+def _load(cfg: TrackGraphConfig, role: str) -> None:
+    if role == "segmenter":
+        from services.keyframe_vl.segmenters import make_segmenter
+
+        make_segmenter(cfg.keyframe_vl.segmenter)
+    elif role == "vl_encoder":
+        from services.keyframe_vl.encoders import make_vl_encoder
+
+        make_vl_encoder(cfg.keyframe_vl.vl)
+    else:
+        from services.tracker.features import make_dense_features
+
+        make_dense_features(cfg.tracker.features)
+
+
+def check_models(cfg: TrackGraphConfig, load: bool = True) -> dict:
+    """``{"ok", "missing": [paths], "models": [entries]}``; ``ok`` when every file is present
+    and (with ``load``) builds through the same code path mapping uses."""
+    entries = []
+    for role, backend, path, source in needed(cfg):
+        present = Path(path).expanduser().exists()
+        loads, error = None, None
+        if present and load:
+            try:
+                _load(cfg, role)
+                loads = True
+            except Exception as exc:  # noqa: BLE001 - report any loader failure to the user
+                loads, error = False, f"{type(exc).__name__}: {exc}"
+        elif not present:
+            error = f"{path} not found"
+        entries.append(ModelEntry(role, backend, str(path), present, loads, error, source))
+    missing = [e.path for e in entries if not e.present]
+    ok = not missing and all(e.loads is not False for e in entries)
+    return {"ok": ok, "missing": missing, "models": [asdict(e) for e in entries]}

@@ -1,0 +1,39 @@
+"""``trackgraph export-onnx``: the configured FastSAM, CLIP towers and DINOv3 as ONNX files,
+for onnxruntime or TensorRT on a Jetson. Point a config's ``fastsam_onnx``, ``clip_onnx`` and
+``dinov3_onnx`` backends at the results."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from shared.config.root import TrackGraphConfig
+
+log = logging.getLogger(__name__)
+
+
+def export_all(cfg: TrackGraphConfig, out: Path, only: set[str] | None = None) -> dict[str, str]:
+    """Export every learned model of ``cfg`` (or the ``only`` roles) under ``out``."""
+    out = Path(out)
+    done: dict[str, str] = {}
+    seg, vl, feats = cfg.keyframe_vl.segmenter, cfg.keyframe_vl.vl, cfg.tracker.features
+    want = only or {"segmenter", "vl_encoder", "dense_features"}
+    torch_backends = {"segmenter": seg.backend == "fastsam", "vl_encoder": vl.backend == "openclip", "dense_features": feats.backend == "dinov3"}
+    if not any(torch_backends[r] for r in want):
+        raise ValueError("nothing to export: the config names no torch backend (fastsam, openclip, dinov3)")
+    out.mkdir(parents=True, exist_ok=True)
+    if "segmenter" in want and seg.backend == "fastsam":
+        from services.keyframe_vl.segmenters.fastsam_onnx import export_fastsam_onnx
+
+        done["segmenter"] = str(export_fastsam_onnx(seg.weights, out / "fastsam.onnx", seg.imgsz))
+    if "vl_encoder" in want and vl.backend == "openclip":
+        from services.keyframe_vl.encoders.clip_onnx import export_clip_onnx
+
+        done["vl_encoder"] = str(export_clip_onnx(vl.model, vl.weights, out / "clip"))
+    if "dense_features" in want and feats.backend == "dinov3":
+        from services.tracker.features import export_dinov3_onnx
+
+        done["dense_features"] = str(export_dinov3_onnx(feats, out / "dinov3.onnx"))
+    for role, path in done.items():
+        log.info("exported %s to %s", role, path)
+    return done

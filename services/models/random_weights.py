@@ -1,0 +1,50 @@
+"""Checkpoints of the paper's real architectures with random weights, for benchmarks and
+tests: the same FLOPs and the same loading path as the real weights, which cannot be
+downloaded where this project is built. Never use them to measure accuracy."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def save_random_fastsam(path: str | Path, variant: str = "x", seed: int = 0) -> Path:
+    """FastSAM is YOLOv8-seg with one class; FastSAM-x is the ``x`` scale. Saved the way
+    ultralytics saves checkpoints, so ``FastSAM(path)`` loads it."""
+    import torch
+    from ultralytics.nn.tasks import SegmentationModel, yaml_model_load
+
+    torch.manual_seed(seed)
+    spec = yaml_model_load(f"yolov8{variant}-seg.yaml")  # ships inside ultralytics
+    spec["nc"] = 1
+    model = SegmentationModel(spec, ch=3, nc=1, verbose=False)
+    model.task = "segment"
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({"model": model.half(), "ema": None, "train_args": {"task": "segment", "imgsz": 1024}}, path)
+    return path
+
+
+def save_random_openclip(path: str | Path, arch: str = "ViT-H-14", seed: int = 0) -> Path:
+    """An OpenCLIP state dict of ``arch`` that ``open_clip`` loads from a file path."""
+    import open_clip
+    import torch
+
+    torch.manual_seed(seed)
+    model = open_clip.create_model(arch, pretrained=None)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(model.state_dict(), path)
+    return path
+
+
+def save_random_dinov3_timm(path: str | Path, seed: int = 0) -> Path:
+    """DINOv3 ViT-S+/16 as timm's ``vit_small_plus_patch16_dinov3`` state dict (``loader: timm``)."""
+    import timm
+    import torch
+
+    torch.manual_seed(seed)
+    model = timm.create_model("vit_small_plus_patch16_dinov3", pretrained=False)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(model.state_dict(), path)
+    return path

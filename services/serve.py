@@ -1,0 +1,58 @@
+"""``trackgraph serve SERVICE``: run one service node in this process until SIGINT/SIGTERM
+(or, for fusion, until the sequence it maps has ended when ``exit_at_end``)."""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+from pathlib import Path
+
+from shared.config.root import TrackGraphConfig
+
+log = logging.getLogger(__name__)
+
+SERVICES = ("keyframe_vl", "tracker", "fusion")
+
+
+def build_node(service: str, cfg: TrackGraphConfig, *, out: Path | None = None, resume: bool = False):
+    if service == "keyframe_vl":
+        from services.keyframe_vl.node import KeyframeVLNode
+
+        return KeyframeVLNode(cfg)
+    if service == "tracker":
+        from services.tracker.node import TrackerNode
+
+        return TrackerNode(cfg)
+    if service == "fusion":
+        from services.fusion.node import FusionNode
+
+        if out is None:
+            raise ValueError("fusion needs --out MAP_DIR for its snapshots and the final map")
+        return FusionNode(cfg, out, resume=resume)
+    raise ValueError(f"unknown service {service!r}; expected one of {', '.join(SERVICES)}")
+
+
+def serve(
+    service: str,
+    cfg: TrackGraphConfig,
+    *,
+    out: Path | None = None,
+    resume: bool = False,
+    exit_at_end: bool = False,
+    stop: threading.Event | None = None,
+) -> None:
+    stop = stop or threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: stop.set())
+    node = build_node(service, cfg, out=out, resume=resume)
+    log.info("%s serving as robot %s", service, cfg.robot_id)
+    try:
+        while not stop.wait(1.0):
+            if exit_at_end and getattr(node, "finished", None) is not None and node.finished.is_set():
+                break
+            log.debug("%s: %s", service, node.stats())
+    finally:
+        node.close()
+        log.info("%s stopped: %s", service, node.stats())

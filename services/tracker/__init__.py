@@ -1,0 +1,1 @@
+"""tracker: source-track propagation between keyframes and keyframe correction (paper III-B)."""

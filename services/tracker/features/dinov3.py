@@ -1,0 +1,223 @@
+"""DINOv3 ViT-S+/16 dense features from local weights (paper III-B, IV-A).
+
+Three weight layouts load into the same features:
+
+* ``transformers``: a folder written by ``save_pretrained`` (``config.json`` plus
+  ``model.safetensors``), e.g. https://huggingface.co/facebook/dinov3-vits16plus-pretrain-lvd1689m
+  downloaded by the user; loaded with ``DINOv3ViTModel.from_pretrained(folder,
+  local_files_only=True)``.
+* ``timm``: a state dict with timm's key names (``.safetensors``, ``.pth`` or ``.bin``, or a folder
+  holding ``model.safetensors``), e.g. https://huggingface.co/timm/vit_small_plus_patch16_dinov3.lvd1689m;
+  built as ``timm.create_model("vit_small_plus_patch16_dinov3", pretrained=False)``.
+* ``hub``: the official checkpoint ``dinov3_vits16plus_pretrain_lvd1689m-*.pth`` that
+  ``torch.hub.load("facebookresearch/dinov3", "dinov3_vits16plus", weights=...)`` reads (from
+  https://github.com/facebookresearch/dinov3, after accepting its license). Its keys are mapped
+  onto the timm model by timm's own ``eva.checkpoint_filter_fn``: ``storage_tokens`` ->
+  ``reg_token``, ``blocks.i.ls{1,2}.gamma`` -> ``gamma_{1,2}``, ``mlp.w1/w2/w3`` ->
+  ``mlp.fc1_g/fc1_x/fc2``, ``attn.qkv.bias`` -> ``attn.q_bias``/``attn.v_bias`` (the key bias is
+  masked to zero upstream, so it is dropped), and ``rope_embed.periods``, ``mask_token`` and
+  ``*.bias_mask`` are discarded (recomputed or training-only). No DINOv3 source code is needed.
+
+All three give the same patch tokens for the same weights (tests check it to 1e-4): taken
+after the final LayerNorm, without the CLS token and the 4 register tokens, reshaped to the
+patch grid and L2-normalised per patch.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from services.tracker.features.base import (
+    IMAGENET_MEAN,
+    IMAGENET_STD,
+    PatchGridMixin,
+    check_inputs,
+)
+
+log = logging.getLogger(__name__)
+
+Loader = Literal["transformers", "timm", "hub"]
+
+TIMM_VARIANT = "vit_small_plus_patch16_dinov3"
+TIMM_VARIANT_QKV_BIAS = "vit_small_plus_patch16_dinov3_qkvb"
+
+WHERE = {
+    "transformers": "a folder with config.json and model.safetensors, e.g. "
+    "https://huggingface.co/facebook/dinov3-vits16plus-pretrain-lvd1689m (gated: accept the "
+    "DINOv3 license, then download the folder)",
+    "timm": "model.safetensors from https://huggingface.co/timm/vit_small_plus_patch16_dinov3.lvd1689m",
+    "hub": "dinov3_vits16plus_pretrain_lvd1689m-4057cbaa.pth, linked from "
+    "https://github.com/facebookresearch/dinov3 after accepting its license",
+}
+
+
+def missing_weights(loader: str, path: Path, detail: str = "") -> FileNotFoundError:
+    extra = f" ({detail})" if detail else ""
+    return FileNotFoundError(
+        f"DINOv3 ViT-S+/16 weights for loader '{loader}' not found at {path}{extra}. "
+        f"Weights are never downloaded; put {WHERE[loader]} there, or set "
+        f"tracker.features.weights, or use tracker.features.backend: classical."
+    )
+
+
+class PatchTokens(nn.Module):
+    """Backbone wrapper: pixels (1, 3, H, W) -> final-norm patch tokens (1, H/16 * W/16, D).
+
+    One interface over the transformers and timm models, used by the torch backend and by the
+    ONNX export alike so the two cannot drift apart.
+    """
+
+    def __init__(self, backbone: nn.Module, kind: Literal["transformers", "timm"], num_prefix: int, dim: int, patch_size: int):
+        super().__init__()
+        self.backbone = backbone
+        self.kind = kind
+        self.num_prefix = num_prefix
+        self.dim = dim
+        self.patch_size = patch_size
+
+    def forward(self, pixels: torch.Tensor) -> torch.Tensor:
+        if self.kind == "transformers":
+            tokens = self.backbone(pixel_values=pixels).last_hidden_state
+        else:
+            tokens = self.backbone.forward_features(pixels)
+        return tokens[:, self.num_prefix :]
+
+
+def _read_state_dict(path: Path) -> dict[str, torch.Tensor]:
+    if path.suffix == ".safetensors":
+        from safetensors.torch import load_file
+
+        return load_file(str(path), device="cpu")
+    obj = torch.load(str(path), map_location="cpu", weights_only=True)
+    # Training checkpoints nest the weights; the released files are flat.
+    for key in ("model_ema", "teacher", "model", "state_dict"):
+        if isinstance(obj, dict) and isinstance(obj.get(key), dict):
+            obj = obj[key]
+    if not isinstance(obj, dict):
+        raise ValueError(f"{path} does not hold a state dict (got {type(obj).__name__})")
+    return obj
+
+
+def _resolve_file(loader: str, path: Path, names: tuple[str, ...], pattern: str) -> Path:
+    if path.is_file():
+        return path
+    if path.is_dir():
+        for name in names:
+            if (path / name).is_file():
+                return path / name
+        found = sorted(path.glob(pattern))
+        if len(found) == 1:
+            return found[0]
+        if len(found) > 1:
+            raise ValueError(f"{path} holds several {pattern} files ({[p.name for p in found]}); point weights at one")
+        raise missing_weights(loader, path, f"no {' / '.join(names)} or {pattern} inside")
+    raise missing_weights(loader, path)
+
+
+def timm_from_state_dict(state_dict: dict[str, torch.Tensor], source: str) -> nn.Module:
+    """Builds timm's ViT-S+/16 DINOv3 and loads timm- or hub-format weights into it."""
+    import timm
+    from timm.models.eva import checkpoint_filter_fn
+
+    # The released S+ has zero q/v biases and timm ships it without them; a checkpoint that
+    # carries them (hub format, or timm's _qkvb export) gets the variant that has the slots.
+    has_bias = any(k.endswith(("attn.qkv.bias", "attn.q_bias")) for k in state_dict)
+    variant = TIMM_VARIANT_QKV_BIAS if has_bias else TIMM_VARIANT
+    model = timm.create_model(variant, pretrained=False, num_classes=0)
+    mapped = checkpoint_filter_fn(state_dict, model)
+    mapped = {k: v for k, v in mapped.items() if not k.startswith(("head.", "fc_norm."))}
+    try:
+        missing, unexpected = model.load_state_dict(mapped, strict=False)
+    except RuntimeError as exc:
+        raise ValueError(f"{source} is not a DINOv3 ViT-S+/16 checkpoint: {exc}") from exc
+    if missing or unexpected:
+        raise ValueError(
+            f"{source} is not a DINOv3 ViT-S+/16 checkpoint: missing {missing[:5]}, unexpected {unexpected[:5]}"
+        )
+    return model.eval()
+
+
+def load_patch_tokens(loader: Loader, weights: str | Path) -> PatchTokens:
+    """The ViT-S+/16 backbone from local files, on CPU in float32, in eval mode."""
+    path = Path(weights).expanduser()
+    if loader == "transformers":
+        if not (path / "config.json").is_file():
+            raise missing_weights(loader, path, "no config.json")
+        from transformers import DINOv3ViTModel
+
+        model = DINOv3ViTModel.from_pretrained(str(path), local_files_only=True).eval()
+        cfg = model.config
+        if cfg.model_type != "dinov3_vit":
+            raise ValueError(f"{path} holds a {cfg.model_type} model, not dinov3_vit")
+        patch = cfg.patch_size if isinstance(cfg.patch_size, int) else int(cfg.patch_size[0])
+        wrapped = PatchTokens(model, "transformers", 1 + cfg.num_register_tokens, cfg.hidden_size, patch)
+    elif loader in ("timm", "hub"):
+        if loader == "timm":
+            file = _resolve_file(loader, path, ("model.safetensors", "pytorch_model.bin"), "*.safetensors")
+        else:
+            file = _resolve_file(loader, path, (), "dinov3_vits16plus*.pth")
+        state = _read_state_dict(file)
+        if loader == "hub" and "storage_tokens" not in state:
+            raise ValueError(f"{file} is not an official DINOv3 checkpoint (no storage_tokens); use loader: timm")
+        model = timm_from_state_dict(state, str(file))
+        wrapped = PatchTokens(model, "timm", model.num_prefix_tokens, model.embed_dim, model.patch_embed.patch_size[0])
+    else:
+        raise ValueError(f"unknown DINOv3 loader {loader!r}")
+    log.info("DINOv3 %s backbone loaded from %s (%d prefix tokens, dim %d)", loader, path, wrapped.num_prefix, wrapped.dim)
+    return wrapped
+
+
+def preprocess(
+    rgb: Annotated[np.ndarray, "(H, W, 3) uint8"],
+    size: tuple[int, int],
+    device: torch.device | str = "cpu",
+) -> Annotated[torch.Tensor, "(1, 3, H', W') float32, ImageNet-normalised"]:
+    """Resize (bilinear, antialiased when shrinking) and normalise one frame for the ViT."""
+    x = torch.from_numpy(np.ascontiguousarray(rgb)).to(device).permute(2, 0, 1)[None].float().div_(255.0)
+    if tuple(x.shape[-2:]) != tuple(size):
+        x = F.interpolate(x, size=size, mode="bilinear", align_corners=False, antialias=True)
+    mean = torch.tensor(IMAGENET_MEAN, device=x.device).view(1, 3, 1, 1)
+    std = torch.tensor(IMAGENET_STD, device=x.device).view(1, 3, 1, 1)
+    return (x - mean) / std
+
+
+def tokens_to_grid(tokens: torch.Tensor, h: int, w: int) -> Annotated[torch.Tensor, "(h, w, D) float32 unit"]:
+    if tokens.shape[0] != h * w:
+        raise RuntimeError(f"backbone returned {tokens.shape[0]} patch tokens for a {h}x{w} grid")
+    return F.normalize(tokens.float().reshape(h, w, -1), dim=-1)
+
+
+class Dinov3Features(PatchGridMixin):
+    """DINOv3 ViT-S+/16 patch features (torch), fp16 on CUDA when asked."""
+
+    name = "dinov3"
+
+    def __init__(self, model: PatchTokens, short_side: int, device: str | torch.device = "cpu", fp16: bool = False):
+        self.device = torch.device(device)
+        self.patch_size = model.patch_size
+        self.dim = model.dim
+        self.short_side = short_side
+        # Half precision pays only on GPUs; on CPU it is slower and loses accuracy.
+        self.dtype = torch.float16 if fp16 and self.device.type == "cuda" else torch.float32
+        if fp16 and self.device.type != "cuda":
+            log.warning("fp16 DINOv3 requested on %s: running float32 instead", self.device)
+        self.model = model.to(self.device, self.dtype).eval()
+
+    @torch.no_grad()
+    def __call__(
+        self,
+        rgb: Annotated[np.ndarray, "(H, W, 3) uint8"],
+        depth_m: Annotated[np.ndarray, "(H, W) float32"] | None = None,
+    ) -> Annotated[torch.Tensor, "(h, w, D) float32, unit L2 norm per patch"]:
+        height, width = check_inputs(rgb, depth_m)
+        size = self.resized_shape(height, width)
+        x = preprocess(rgb, size, self.device).to(self.dtype)
+        tokens = self.model(x)[0]
+        return tokens_to_grid(tokens, size[0] // self.patch_size, size[1] // self.patch_size)

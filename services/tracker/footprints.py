@@ -1,0 +1,135 @@
+"""3D footprints of source tracks: where a lost track should appear in a later keyframe.
+
+A track's footprint is a sample of the world points under the last keyframe mask assigned to
+it (back-projected with that keyframe's depth, intrinsics and pose). Projected into a later
+keyframe, with a depth test against that keyframe's depth, it gives the pixels the object
+would cover if it is still there: a predicted mask for tracks that propagation no longer
+carries, compared with the detections under the same gates as propagated masks (eq. 3).
+The deviation from the paper that this serves is described in ``services.tracker.core``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Annotated
+
+import numpy as np
+from scipy import ndimage
+
+from shared.geometry import Intrinsics
+
+MAX_POINTS = 1500
+"""Points sampled from one mask: it is sampled on a regular pixel grid at this size."""
+MAX_MERGED_POINTS = 4000
+"""Points kept per track over all its keyframe masks (voxel-thinned beyond this)."""
+MIN_VISIBLE = 8
+"""A footprint with fewer points in view (and not occluded) predicts no mask."""
+OCCLUSION_ABS_M = 0.05
+OCCLUSION_REL = 0.05
+"""A projected point counts as hidden when it lies more than ``abs + rel x observed depth``
+behind the keyframe's depth at its pixel: the slack absorbs depth noise and the sampling of
+slanted surfaces, not the thickness of occluders."""
+MAX_CLOSING_PX = 8
+"""Cap on the gap filling between projected samples (a footprint seen from very close)."""
+
+Pose = Annotated[np.ndarray, "(4, 4) float64 camera-to-world"]
+
+
+@dataclass(frozen=True)
+class Footprint:
+    """World points of one mask and their sampling step."""
+
+    points: Annotated[np.ndarray, "(N, 3) float32 world"]
+    spacing_m: float
+    """World distance between neighbouring samples at the points' median depth."""
+
+
+def mask_footprint(
+    mask: Annotated[np.ndarray, "(H, W) bool"],
+    depth_m: Annotated[np.ndarray, "(H, W) float32 metres, 0 = none"],
+    K: Intrinsics,
+    T_world_cam: Pose,
+    max_points: int = MAX_POINTS,
+) -> Footprint | None:
+    """The mask's pixels with a depth reading, sampled every s pixels in x and y so at most
+    about ``max_points`` remain, in world coordinates. None without any valid depth."""
+    valid = mask & (depth_m > 0) & np.isfinite(depth_m)
+    n = int(valid.sum())
+    if n == 0:
+        return None
+    step = max(1, math.ceil(math.sqrt(n / max_points)))
+    if step > 1:
+        grid = np.zeros_like(valid)
+        grid[::step, ::step] = True
+        sampled = valid & grid
+        # A thin mask can fall between the grid lines: keep it whole rather than lose it.
+        if sampled.any():
+            valid = sampled
+    ys, xs = np.nonzero(valid)
+    z = depth_m[ys, xs].astype(np.float64)
+    cam = np.stack([(xs - K.cx) / K.fx * z, (ys - K.cy) / K.fy * z, z], axis=1)
+    world = cam @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
+    spacing = step * float(np.median(z)) / K.fx
+    return Footprint(world.astype(np.float32), spacing)
+
+
+def merge_footprints(old: Footprint | None, new: Footprint | None, max_points: int = MAX_MERGED_POINTS) -> Footprint | None:
+    """The union of two footprints of one track (the surfaces seen from several keyframes),
+    thinned on a voxel grid that doubles until at most ``max_points`` points remain."""
+    if old is None or new is None:
+        return new if old is None else old
+    points = np.concatenate([new.points, old.points])
+    spacing = max(old.spacing_m, new.spacing_m)
+    if len(points) <= max_points:
+        return Footprint(points, spacing)
+    voxel = max(spacing, 1e-3)
+    while True:
+        keys = np.floor(points / voxel).astype(np.int64)
+        _, first = np.unique(keys, axis=0, return_index=True)
+        if len(first) <= max_points:
+            break
+        voxel *= 2.0
+    # The first occurrence favours the newest view, which comes first in ``points``.
+    return Footprint(points[np.sort(first)], max(spacing, voxel))
+
+
+def project_footprint(
+    fp: Footprint,
+    depth_m: Annotated[np.ndarray, "(H, W) float32 metres, 0 = none"],
+    K: Intrinsics,
+    T_world_cam: Pose,
+) -> Annotated[np.ndarray, "(H, W) bool"]:
+    """The pixels the footprint covers in a view, hidden points removed; gaps between the
+    projected samples are closed at the scale the sampling step has at the new distance."""
+    H, W = depth_m.shape
+    out = np.zeros((H, W), bool)
+    R, t = T_world_cam[:3, :3], T_world_cam[:3, 3]
+    cam = (fp.points.astype(np.float64) - t) @ R
+    z = cam[:, 2]
+    front = z > 1e-3
+    if not front.any():
+        return out
+    cam, z = cam[front], z[front]
+    u = np.floor(cam[:, 0] / z * K.fx + K.cx + 0.5).astype(np.int64)
+    v = np.floor(cam[:, 1] / z * K.fy + K.cy + 0.5).astype(np.int64)
+    inside = (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    u, v, z = u[inside], v[inside], z[inside]
+    if len(u) < MIN_VISIBLE:
+        return out
+    d = depth_m[v, u]
+    seen = (d <= 0) | (z <= d + OCCLUSION_ABS_M + OCCLUSION_REL * d)
+    u, v, z = u[seen], v[seen], z[seen]
+    if len(u) < MIN_VISIBLE:
+        return out
+    out[v, u] = True
+    gap = fp.spacing_m * K.fx / float(np.median(z))
+    size = min(MAX_CLOSING_PX, math.ceil(gap)) + 1
+    if size > 1:
+        pad = size + 1
+        y0, y1 = max(int(v.min()) - pad, 0), min(int(v.max()) + pad + 1, H)
+        x0, x1 = max(int(u.min()) - pad, 0), min(int(u.max()) + pad + 1, W)
+        crop = np.pad(out[y0:y1, x0:x1], pad)
+        closed = ndimage.binary_closing(crop, structure=np.ones((size, size), bool))
+        out[y0:y1, x0:x1] = closed[pad:-pad, pad:-pad]
+    return out

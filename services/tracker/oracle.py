@@ -1,0 +1,102 @@
+"""A tracker with perfect identities, for synthetic scenes: masks are the ground-truth
+instances, and an object keeps its track while in view. It isolates the fusion stages from
+tracking errors (the issue's "ground-truth tracked frames") and gives the upper bound of the
+mapping. Like a real tracker it can retire a track whose object left the view and start a
+new one when it returns, which is what long-term re-identification must merge."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import numpy as np
+
+from services.keyframe_vl.types import KeyframeImage, Masks, VLEncoder
+from shared.messages.frames import Frame, TrackedFrame, TrackObservation
+from shared.messages.keyframes import TrackFeature, TrackFeatures
+
+DINO_DIM = 64
+
+
+def identity_feature(track_id: int, dim: int = DINO_DIM) -> Annotated[np.ndarray, "(dim,) float32 unit"]:
+    """A fixed random unit vector per object: distinct objects are nearly orthogonal, the
+    same object always matches itself, as a perfect appearance descriptor would."""
+    v = np.random.default_rng(1_000_003 + track_id).standard_normal(dim)
+    return (v / np.linalg.norm(v)).astype(np.float32)
+
+
+class GroundTruthTracker:
+    """Same call protocol as :class:`services.tracker.core.TrackerCore`, minus the masks."""
+
+    def __init__(self, keyframe_interval: int = 24, encoder: VLEncoder | None = None, retire_frames: int = 0) -> None:
+        self.keyframe_interval = keyframe_interval
+        self.encoder = encoder
+        self.retire_frames = retire_frames
+        self.count = 0
+        self.track_of: dict[int, int] = {}
+        """Object id -> its current track id."""
+        self.object_of: dict[int, int] = {}
+        self.last_seen: dict[int, int] = {}
+        self.next_track = 0
+        self.clip: dict[int, tuple[np.ndarray, int]] = {}
+        self.changed: set[int] = set()
+        self._frame: Frame | None = None
+
+    def begin_frame(self, frame: Frame) -> None:
+        if frame.instances is None:
+            raise ValueError(f"frame {frame.frame_index} has no ground-truth instances; the ground_truth tracker needs a synthetic sequence")
+        self._frame = frame
+        objects = [int(i) for i in np.unique(frame.instances) if i >= 0]
+        for obj in objects:
+            gone = self.count - self.last_seen.get(obj, self.count)
+            if obj not in self.track_of or (self.retire_frames and gone > self.retire_frames):
+                self.track_of[obj] = self.next_track
+                self.object_of[self.next_track] = obj
+                self.changed.add(self.next_track)
+                self.next_track += 1
+            self.last_seen[obj] = self.count
+        lut = np.full(max(objects, default=0) + 1, -1, np.int32)
+        for obj in objects:
+            lut[obj] = self.track_of[obj]
+        self._labels = np.where(frame.instances >= 0, lut[np.maximum(frame.instances, 0)], -1).astype(np.int32)
+        if self.encoder is not None and self.count % self.keyframe_interval == 0:
+            self._embed(frame, objects)
+        self.count += 1
+        return None
+
+    def _embed(self, frame: Frame, ids: list[int]) -> None:
+        masks = frame.instances[None] == np.asarray(ids)[:, None, None]
+        keep = masks.reshape(len(ids), -1).sum(1) >= 50
+        if not keep.any():
+            return
+        ids = [i for i, k in zip(ids, keep, strict=True) if k]
+        masks = masks[keep]
+        boxes = np.stack([_box(m) for m in masks]).astype(np.float32)
+        image = KeyframeImage(frame_index=frame.frame_index, rgb=frame.rgb, depth_m=frame.depth_m(), intrinsics=frame.intrinsics, instances=frame.instances)
+        feats = self.encoder.encode_crops(image, Masks(masks, boxes, np.ones(len(ids), np.float32)))
+        for obj, f in zip(ids, feats, strict=True):
+            tid = self.track_of[obj]
+            mean, n = self.clip.get(tid, (np.zeros_like(f), 0))
+            self.clip[tid] = ((n * mean + f) / (n + 1), n + 1)
+            self.changed.add(tid)
+
+    def end_frame(self) -> TrackedFrame:
+        fr = self._frame
+        assert fr is not None
+        labels = self._labels
+        obs = [TrackObservation(track_id=int(t), keyframe=True, frames_since_keyframe=0) for t in np.unique(labels) if t >= 0]
+        return TrackedFrame(frame=fr, track_ids=labels, tracks=obs, keyframe=True)
+
+    def take_track_features(self, frame_index: int) -> TrackFeatures | None:
+        if not self.changed:
+            return None
+        out = []
+        for tid in sorted(self.changed):
+            mean, n = self.clip.get(tid, (None, 0))
+            out.append(TrackFeature(track_id=tid, dino=identity_feature(self.object_of[tid]), clip=mean, clip_count=n))
+        self.changed.clear()
+        return TrackFeatures(frame_index=frame_index, tracks=out)
+
+
+def _box(mask: np.ndarray) -> np.ndarray:
+    ys, xs = np.nonzero(mask)
+    return np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], np.float32)

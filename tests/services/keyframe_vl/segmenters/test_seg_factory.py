@@ -1,0 +1,78 @@
+"""The factory picks backends by name and importing the package stays light."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from services.keyframe_vl.segmenters import BACKENDS, make_segmenter
+from shared.config.keyframe_vl import SegmenterConfig
+
+LIGHT = [
+    "services.keyframe_vl.segmenters",
+    "services.keyframe_vl.segmenters.base",
+    "services.keyframe_vl.segmenters.simulated",
+    "services.keyframe_vl.segmenters.classical",
+    "services.keyframe_vl.segmenters.yolo_post",
+    "services.keyframe_vl.segmenters.fastsam",
+    "services.keyframe_vl.segmenters.fastsam_onnx",
+]
+
+
+def test_importing_segmenters_loads_no_heavy_library():
+    code = (
+        "import sys\n"
+        + "".join(f"import {m}\n" for m in LIGHT)
+        + "print(','.join(m for m in ('torch', 'ultralytics', 'onnxruntime', 'cv2') if m in sys.modules))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == ""
+
+
+@pytest.mark.parametrize("backend", ["classical", "simulated"])
+def test_weightless_backends(backend, room):
+    seg = make_segmenter(SegmenterConfig(backend=backend))
+    assert seg.name == backend
+    out = seg.segment(room)
+    assert out.masks.shape[1:] == room.rgb.shape[:2] and len(out) > 0
+
+
+def test_every_config_backend_is_known():
+    literal = SegmenterConfig.model_fields["backend"].annotation.__args__
+    assert set(literal) == set(BACKENDS)
+
+
+def test_bad_images_are_refused(room):
+    seg = make_segmenter(SegmenterConfig(backend="classical"))
+    import dataclasses
+
+    with pytest.raises(ValueError, match="uint8"):
+        seg.segment(dataclasses.replace(room, rgb=room.rgb.astype(float)))
+
+
+def test_ultralytics_import_leaves_the_process_alone():
+    """ultralytics patches PIL.Image.open, pins OMP_NUM_THREADS (leaving torch on one thread)
+    and sets numpy print options on import; import_ultralytics avoids or undoes all of it."""
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
+    code = (
+        "import os, numpy as np\n"
+        "from PIL import Image\n"
+        "before = (Image.open, np.get_printoptions(), 'OMP_NUM_THREADS' in os.environ)\n"
+        "from services.keyframe_vl.segmenters.fastsam import import_ultralytics\n"
+        "import_ultralytics()\n"
+        "import torch\n"
+        "after = (Image.open, np.get_printoptions(), 'OMP_NUM_THREADS' in os.environ)\n"
+        "print(before == after, torch.get_num_threads())\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
+    assert out.returncode == 0, out.stderr
+    plain = subprocess.run(
+        [sys.executable, "-c", "import torch; print(torch.get_num_threads())"],
+        capture_output=True, text=True, timeout=120, env=env,
+    )
+    assert out.stdout.split() == ["True", plain.stdout.strip()]
