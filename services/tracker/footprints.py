@@ -1,7 +1,8 @@
 """3D footprints of source tracks: where a lost track should appear in a later keyframe.
 
-A track's footprint is a sample of the world points under the last keyframe mask assigned to
-it (back-projected with that keyframe's depth, intrinsics and pose). Projected into a later
+A track's footprint is a sample of the world points under the keyframe masks assigned to it
+(back-projected with each keyframe's depth, intrinsics and pose, merged over keyframes and
+thinned on a voxel grid), i.e. the surface seen of the object so far. Projected into a later
 keyframe, with a depth test against that keyframe's depth, it gives the pixels the object
 would cover if it is still there: a predicted mask for tracks that propagation no longer
 carries, compared with the detections under the same gates as propagated masks (eq. 3).
@@ -38,7 +39,7 @@ Pose = Annotated[np.ndarray, "(4, 4) float64 camera-to-world"]
 
 @dataclass(frozen=True)
 class Footprint:
-    """World points of one mask and their sampling step."""
+    """World points of one or more masks of a track and their sampling step."""
 
     points: Annotated[np.ndarray, "(N, 3) float32 world"]
     spacing_m: float
@@ -124,12 +125,15 @@ def project_footprint(
         return out
     out[v, u] = True
     gap = fp.spacing_m * K.fx / float(np.median(z))
-    size = min(MAX_CLOSING_PX, math.ceil(gap)) + 1
-    if size > 1:
+    # Closing with an odd square (it fills holes narrower than its side) as separable max and
+    # min filters: the same result as ``binary_closing`` with a square, several times faster.
+    size = 2 * math.ceil(min(MAX_CLOSING_PX, gap) / 2) + 1
+    if gap > 1.0:
         pad = size + 1
         y0, y1 = max(int(v.min()) - pad, 0), min(int(v.max()) + pad + 1, H)
         x0, x1 = max(int(u.min()) - pad, 0), min(int(u.max()) + pad + 1, W)
-        crop = np.pad(out[y0:y1, x0:x1], pad)
-        closed = ndimage.binary_closing(crop, structure=np.ones((size, size), bool))
-        out[y0:y1, x0:x1] = closed[pad:-pad, pad:-pad]
+        crop = np.pad(out[y0:y1, x0:x1], pad).view(np.uint8)
+        grown = ndimage.maximum_filter1d(ndimage.maximum_filter1d(crop, size, axis=0), size, axis=1)
+        closed = ndimage.minimum_filter1d(ndimage.minimum_filter1d(grown, size, axis=0), size, axis=1)
+        out[y0:y1, x0:x1] = closed[pad:-pad, pad:-pad].astype(bool)
     return out

@@ -238,7 +238,8 @@ def upsample_labels(labels: LabelMap, height: int, width: int, chunk_rows: int =
     same argmax c takes c (a convex combination of vectors that all peak first at c peaks
     first at c too), and only the others, along label boundaries, are interpolated, in row
     chunks so full-resolution C-channel maps are never held at once. At 720 x 1280 with 40
-    slots this is 3-5x faster than interpolating everything.
+    keyframe-like slots (one CPU thread) this took 0.2 s against 0.5 s for interpolating
+    every pixel, with identical output; at 240 x 320 the two are on par.
     """
     h, w, n_slots = labels.shape
     device = labels.device

@@ -1,6 +1,6 @@
 """Source tracks (paper III-B): identity, aggregated DINOv3 and CLIP features.
 
-Besides the paper's tuple, a track remembers the 3D footprint of its last keyframe mask, and
+Besides the paper's tuple, a track remembers the 3D footprint of its keyframe masks, and
 the book keeps tracks that went unmatched in a bounded *lost* pool instead of dropping them at
 once (see ``services.tracker.core`` for why and how they come back).
 """
@@ -31,7 +31,7 @@ class Track:
     clip: Annotated[np.ndarray, "(Dc,) float32"] | None = None
     clip_count: int = 0
     footprint: Footprint | None = None
-    """World points under the last keyframe mask assigned to the track."""
+    """World points under the keyframe masks assigned to the track (``footprints``)."""
 
     def detected(self, feature: np.ndarray, count: int, eta: float) -> None:
         self.dino = ema(self.dino, feature, eta)
