@@ -62,8 +62,8 @@ import torch  # noqa: E402
 
 from services.keyframe_vl.core import keyframe_image  # noqa: E402
 from services.keyframe_vl.segmenters import make_segmenter  # noqa: E402
-from services.keyframe_vl.segmenters.fastsam import import_ultralytics  # noqa: E402
 from services.keyframe_vl.types import KeyframeImage, Segmenter  # noqa: E402
+from services.models.random_weights import save_random_fastsam  # noqa: E402
 from services.tracker.core import TrackerCore  # noqa: E402
 from services.tracker.features.dinov3 import Dinov3Features, PatchTokens  # noqa: E402
 from services.tracker.propagation import propagate_labels, upsample_labels  # noqa: E402
@@ -92,35 +92,6 @@ def dinov3_vits16plus(short_side: int, device: str = "cpu") -> Dinov3Features:
     model = timm.create_model("vit_small_plus_patch16_dinov3", pretrained=False, num_classes=0).eval()
     tokens = PatchTokens(model, "timm", model.num_prefix_tokens, model.embed_dim, model.patch_embed.patch_size[0])
     return Dinov3Features(tokens, short_side, device)
-
-
-def save_fastsam_x(path: Path, seed: int = 0) -> Path:
-    """A FastSAM-x-form checkpoint: YOLOv8x-seg, one class, random weights kept alive (He
-    init, head scaled to logits of order one) so thresholds and NMS behave as with real ones."""
-    import_ultralytics()
-    from ultralytics.nn.tasks import SegmentationModel, yaml_model_load
-
-    torch.manual_seed(seed)
-    spec = yaml_model_load("yolov8x-seg.yaml")  # ships inside ultralytics: no download
-    spec["nc"] = 1
-    model = SegmentationModel(spec, ch=3, nc=1, verbose=False)
-    model.task = "segment"
-    for module in model.modules():
-        if isinstance(module, torch.nn.Conv2d) and module.weight.requires_grad:
-            torch.nn.init.kaiming_normal_(module.weight, nonlinearity="relu")
-    head = model.model[-1]
-    with torch.no_grad():
-        for conv in (seq[-1] for seq in head.cv3):
-            torch.nn.init.normal_(conv.weight, 0.0, 40.0)
-            torch.nn.init.constant_(conv.bias, -1.5)
-        for conv in (seq[-1] for seq in head.cv4):
-            conv.weight.mul_(100.0)
-        for conv in (seq[-1] for seq in head.cv2):
-            torch.nn.init.normal_(conv.weight, 0.0, 30.0)
-            torch.nn.init.constant_(conv.bias, 1.0)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    torch.save({"model": model.half(), "ema": None, "train_args": {"task": "segment", "imgsz": 1024}}, path)
-    return path
 
 
 def fastsam_segmenter(weights: Path, imgsz: int, max_masks: int) -> Segmenter:
@@ -363,7 +334,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     fastsam_pt = ROOT / "benchmarks" / "out" / "fastsam-x-random.pt"
     if not fastsam_pt.is_file():  # deterministic (seeded): built once, then reused
-        save_fastsam_x(fastsam_pt)
+        save_random_fastsam(fastsam_pt, "x", alive=True)
     res: dict[str, Any] = {
         "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
         "quick": args.quick,

@@ -97,6 +97,19 @@ def _sorted_edges(keys: Iterable[EdgeKey]) -> list[Edge]:
     return [Edge(kind=k, source=s, target=t) for k, s, t in sorted(keys, key=lambda x: (_KIND_ORDER[x[0]], x[1], x[2]))]
 
 
+def _snapshot(g: SceneGraph | GraphReplica, with_mesh: bool) -> GraphSnapshot:
+    """The whole graph at its version, nodes sorted by id and edges by kind."""
+    return GraphSnapshot(
+        graph_seq=g.graph_seq,
+        frame_index=g.frame_index,
+        segments=_by_id(g.segments),
+        places=_by_id(g.places),
+        rooms=_by_id(g.rooms),
+        edges=_sorted_edges(g.edges),
+        mesh=g.mesh if with_mesh else None,
+    )
+
+
 def _by_id(nodes: dict[int, BaseModel]) -> list:
     return [nodes[i] for i in sorted(nodes)]
 
@@ -229,15 +242,7 @@ class SceneGraph:
 
     def snapshot(self, with_mesh: bool = False) -> GraphSnapshot:
         """The whole graph at this version, nodes sorted by id and edges by kind."""
-        return GraphSnapshot(
-            graph_seq=self.graph_seq,
-            frame_index=self.frame_index,
-            segments=_by_id(self.segments),
-            places=_by_id(self.places),
-            rooms=_by_id(self.rooms),
-            edges=_sorted_edges(self.edges),
-            mesh=self.mesh if with_mesh else None,
-        )
+        return _snapshot(self, with_mesh)
 
     @classmethod
     def from_snapshot(cls, snap: GraphSnapshot, place_tolerance_m: float = 1e-3) -> SceneGraph:
@@ -321,15 +326,7 @@ class GraphReplica:
         self._drop_dangling()
 
     def snapshot(self, with_mesh: bool = False) -> GraphSnapshot:
-        return GraphSnapshot(
-            graph_seq=self.graph_seq,
-            frame_index=self.frame_index,
-            segments=_by_id(self.segments),
-            places=_by_id(self.places),
-            rooms=_by_id(self.rooms),
-            edges=_sorted_edges(self.edges),
-            mesh=self.mesh if with_mesh else None,
-        )
+        return _snapshot(self, with_mesh)
 
     def _drop_dangling(self) -> None:
         layers = {

@@ -7,21 +7,49 @@ from __future__ import annotations
 from pathlib import Path
 
 
-def save_random_fastsam(path: str | Path, variant: str = "x", seed: int = 0) -> Path:
+def save_random_fastsam(path: str | Path, variant: str = "x", seed: int = 0, alive: bool = False) -> Path:
     """FastSAM is YOLOv8-seg with one class; FastSAM-x is the ``x`` scale. Saved the way
-    ultralytics saves checkpoints, so ``FastSAM(path)`` loads it."""
+    ultralytics saves checkpoints, so ``FastSAM(path)`` loads it.
+
+    ``alive``: PyTorch's default init fades activations until every anchor gets the same
+    score and no mask passes a threshold. He init with the head scaled to logits of order one
+    keeps scores spread, so confidence thresholds and NMS cost what they do with real weights.
+    """
     import torch
     from ultralytics.nn.tasks import SegmentationModel, yaml_model_load
 
+    from services.keyframe_vl.segmenters.fastsam import import_ultralytics
+
+    import_ultralytics()
     torch.manual_seed(seed)
     spec = yaml_model_load(f"yolov8{variant}-seg.yaml")  # ships inside ultralytics
     spec["nc"] = 1
     model = SegmentationModel(spec, ch=3, nc=1, verbose=False)
     model.task = "segment"
+    if alive:
+        _keep_alive(model)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     torch.save({"model": model.half(), "ema": None, "train_args": {"task": "segment", "imgsz": 1024}}, path)
     return path
+
+
+def _keep_alive(model) -> None:
+    import torch
+
+    for module in model.modules():
+        if isinstance(module, torch.nn.Conv2d) and module.weight.requires_grad:  # not the fixed DFL conv
+            torch.nn.init.kaiming_normal_(module.weight, nonlinearity="relu")
+    head = model.model[-1]
+    with torch.no_grad():
+        for conv in (seq[-1] for seq in head.cv3):
+            torch.nn.init.normal_(conv.weight, 0.0, 40.0)
+            torch.nn.init.constant_(conv.bias, -1.5)
+        for conv in (seq[-1] for seq in head.cv4):
+            conv.weight.mul_(100.0)
+        for conv in (seq[-1] for seq in head.cv2):
+            torch.nn.init.normal_(conv.weight, 0.0, 30.0)
+            torch.nn.init.constant_(conv.bias, 1.0)
 
 
 def save_random_openclip(path: str | Path, arch: str = "ViT-H-14", seed: int = 0) -> Path:
