@@ -54,7 +54,10 @@ class FusionCore:
         fr = tf.frame
         tsdf = self.cfg.tsdf
         gamma = {o.track_id: confidence(o.keyframe, o.frames_since_keyframe, tsdf.alpha_p, tsdf.beta_p) for o in tf.tracks}
-        stats = self.tsdf.integrate(fr.depth_m(), fr.rgb, fr.intrinsics, fr.T_world_cam, tf.track_ids, gamma)
+        ids = tf.track_ids
+        if tf.confidence is not None and tsdf.min_label_confidence > 0:
+            ids = np.where(tf.confidence >= round(255 * tsdf.min_label_confidence), ids, -1)
+        stats = self.tsdf.integrate(fr.depth_m(), fr.rgb, fr.intrinsics, fr.T_world_cam, ids, gamma)
         for tid, w in stats.displaced.items():
             self._track(tid).displaced_weight += float(w)
         for o in tf.tracks:

@@ -31,7 +31,7 @@ OCCLUSION_REL = 0.05
 """A projected point counts as hidden when it lies more than ``abs + rel x observed depth``
 behind the keyframe's depth at its pixel: the slack absorbs depth noise and the sampling of
 slanted surfaces, not the thickness of occluders."""
-MAX_CLOSING_PX = 8
+MAX_CLOSING_PX = 32
 """Cap on the gap filling between projected samples (a footprint seen from very close)."""
 
 Pose = Annotated[np.ndarray, "(4, 4) float64 camera-to-world"]
@@ -119,7 +119,10 @@ def project_footprint(
     if len(u) < MIN_VISIBLE:
         return out
     d = depth_m[v, u]
-    seen = (d <= 0) | (z <= d + OCCLUSION_ABS_M + OCCLUSION_REL * d)
+    slack = OCCLUSION_ABS_M + OCCLUSION_REL * d
+    # Behind the observed surface: hidden. In front of it: the camera sees through the place
+    # where the point was, so the object is not there any more (or never was); both are dropped.
+    seen = (d <= 0) | (np.abs(z - d) <= slack)
     u, v, z = u[seen], v[seen], z[seen]
     if len(u) < MIN_VISIBLE:
         return out
@@ -137,3 +140,20 @@ def project_footprint(
         closed = ndimage.minimum_filter1d(ndimage.minimum_filter1d(grown, size, axis=0), size, axis=1)
         out[y0:y1, x0:x1] = closed[pad:-pad, pad:-pad].astype(bool)
     return out
+
+
+def support(
+    track: Footprint,
+    seen: Footprint,
+    radius_m: float,
+) -> float:
+    """Share of the points of ``seen`` (a detection's footprint) that lie within ``radius_m``,
+    or within 1.5 sampling steps of either footprint if that is larger, of a point of
+    ``track``: the 3D overlap of eq. 8, between a detection and what a track was seen as."""
+    from scipy.spatial import cKDTree
+
+    if len(seen.points) == 0 or len(track.points) == 0:
+        return 0.0
+    r = max(radius_m, 1.5 * max(track.spacing_m, seen.spacing_m))
+    dist, _ = cKDTree(track.points).query(seen.points, k=1, distance_upper_bound=r)
+    return float(np.isfinite(dist).mean())

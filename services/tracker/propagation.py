@@ -267,6 +267,15 @@ def upsample_labels(labels: LabelMap, height: int, width: int, chunk_rows: int =
     return out
 
 
+def upsample_confidence(labels: LabelMap, height: int, width: int) -> Annotated[np.ndarray, "(H, W) uint8, 255 = 1"]:
+    """Per pixel, the probability of its most likely slot: the patch grid's maximum over the
+    distribution, bilinearly upsampled like the labels, as 0-255. Where two tracks meet, or
+    propagation found no clear reference, it is low."""
+    peak = labels.float().max(-1).values[None, None]
+    up = F.interpolate(peak, size=(height, width), mode="bilinear", align_corners=False)[0, 0]
+    return (up.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
+
+
 def masks_to_soft(
     masks: Annotated[np.ndarray | torch.Tensor, "(N, H, W) bool, or (H, W) int slot image"] | Sequence[np.ndarray],
     h: int,

@@ -29,6 +29,13 @@ class TSDFConfig(StrictModel):
     """alpha_p, confidence of propagated masks (eq. 6)."""
     beta_p: float = Field(0.1, ge=0)
     """beta_p, decay of that confidence per frame since the last keyframe (eq. 6)."""
+    min_label_confidence: float = Field(0.8, ge=0, le=1)
+    """Not in the paper: a propagated pixel votes (eq. 5) only if eq. 1 gave its track at
+    least this probability (``TrackedFrame.confidence``). Where propagation hesitates, at
+    track borders and on small objects it is losing, its argmax mostly names the neighbour,
+    and those votes outweigh the keyframe's over a keyframe interval: on the ``small`` preset
+    with noise-free masks and classical features the class-agnostic AP50 went from 0.49 to
+    0.75 with 0.8. 0 fuses every propagated pixel, as the paper does."""
     mesh_min_weight: float = Field(1.0, ge=0)
     """Marching cubes uses voxels whose TSDF weight exceeds this: 1 keeps surfaces seen in at
     least two frames, which drops single-frame depth noise."""

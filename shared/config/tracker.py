@@ -51,6 +51,19 @@ class AssociationConfig(StrictModel):
     """Gate: candidate pairs need s_ij at least this (eq. 3)."""
     ema: float = Field(0.2, ge=0, le=1)
     """eta, the track DINOv3 feature EMA rate (III-B)."""
+    support_radius_m: float = Field(0.05, ge=0)
+    """Not in the paper: an active track and a detection are a candidate pair only if some
+    of the detection's back-projected points lie within this distance of the track's 3D
+    footprint (the surface its keyframe masks covered), i.e. the static-world check that
+    stops a label that drifted onto a neighbour from taking the neighbour's detection.
+    0 turns the check off (the paper's purely 2D eq. 3)."""
+    support_min: float = Field(0.02, ge=0, le=1)
+    """Share of the detection's points that must have such support (see
+    ``support_radius_m``)."""
+    support_relative: float = Field(0.5, ge=0, le=1)
+    """And at least this fraction of the best support any candidate track gives the same
+    detection: a floor label that propagation moved onto the rug lying on it touches the
+    rug's points only along its edge, the rug's own track all over."""
 
     @model_validator(mode="after")
     def _weights_sum(self) -> AssociationConfig:

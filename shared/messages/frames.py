@@ -14,6 +14,7 @@ from shared.messages.base import Message, register
 RGB = Annotated[np.ndarray, ArraySpec(("uint8",), (None, None, 3), kind="rgb")]
 Depth = Annotated[np.ndarray, ArraySpec(("uint16",), (None, None), kind="depth")]
 Labels = Annotated[np.ndarray, ArraySpec(("int32",), (None, None), kind="label")]
+Confidence = Annotated[np.ndarray, ArraySpec(("uint8",), (None, None), kind="label")]
 Pose4 = Annotated[np.ndarray, ArraySpec(("float64",), (4, 4), finite=True)]
 
 
@@ -98,11 +99,16 @@ class TrackedFrame(Message):
     """One entry per track id present in ``track_ids``."""
     keyframe: bool = False
     """True if this frame was a keyframe."""
+    confidence: Confidence | None = None
+    """(H, W) probability of each pixel's track under the propagated distribution (eq. 1),
+    scaled to 0-255; None where the labels are not propagated (keyframe masks)."""
 
     @model_validator(mode="after")
     def _consistent(self) -> TrackedFrame:
         if self.track_ids.shape != self.frame.depth.shape:
             raise ValueError(f"track_ids shape {self.track_ids.shape} differs from the frame {self.frame.depth.shape}")
+        if self.confidence is not None and self.confidence.shape != self.track_ids.shape:
+            raise ValueError(f"confidence shape {self.confidence.shape} differs from track_ids {self.track_ids.shape}")
         ids = [t.track_id for t in self.tracks]
         if len(ids) != len(set(ids)):
             raise ValueError("tracks lists a track id twice")

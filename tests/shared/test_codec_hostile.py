@@ -73,6 +73,7 @@ def make_tracked(h: int = 6, w: int = 5) -> TrackedFrame:
         track_ids=ids,
         tracks=[TrackObservation(track_id=0, keyframe=True, frames_since_keyframe=0),
                 TrackObservation(track_id=1, keyframe=False, frames_since_keyframe=3)],
+        confidence=np.full((h, w), 200, np.uint8),
     )
 
 
@@ -637,6 +638,10 @@ CONFUSED: dict[str, tuple[Callable[[], bytes], type, tuple[str, ...]]] = {
         lambda: envelope({**wire_body(make_tracked()), "track_ids": nd("raw", "int32", [2, 2], b"\x00" * 16)},
                          "TrackedFrame"),
         TrackedFrame, ("TrackedFrame", "track_ids")),
+    "tracked-frame-confidence-shape": (
+        lambda: envelope({**wire_body(make_tracked()), "confidence": nd("raw", "uint8", [2, 2], b"\x00" * 4)},
+                         "TrackedFrame"),
+        TrackedFrame, ("TrackedFrame", "confidence")),
     "masks-boxes-count": (
         lambda: envelope(_masks_body(boxes=nd("raw", "float32", [1, 4], b"\x00" * 16)), "KeyframeMasks"),
         KeyframeMasks, ("KeyframeMasks", "boxes")),

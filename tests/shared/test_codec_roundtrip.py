@@ -173,7 +173,8 @@ def tracked_frames(draw: st.DrawFn) -> TrackedFrame:
         for i in ids
     ]
     track_ids = draw(arrays("int32", (h, w), elements=st.sampled_from([-1, *ids])))
-    return TrackedFrame(frame=frame, track_ids=track_ids, tracks=tracks, keyframe=draw(st.booleans()))
+    confidence = draw(st.none() | arrays("uint8", (h, w)))
+    return TrackedFrame(frame=frame, track_ids=track_ids, tracks=tracks, keyframe=draw(st.booleans()), confidence=confidence)
 
 
 @st.composite

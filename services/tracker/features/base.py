@@ -53,6 +53,10 @@ class DenseFeatures(Protocol):
     name: str
     patch_size: int
     dim: int
+    appearance_dims: int
+    """The leading channels that describe appearance whatever the viewpoint: eq. 2's mask
+    prototypes, which must match an object seen again from elsewhere, use only these
+    (renormalised). All of them for DINOv3."""
 
     def grid_shape(self, height: int, width: int) -> tuple[int, int]:
         """Patch grid (h, w) that ``__call__`` returns for an H x W image."""

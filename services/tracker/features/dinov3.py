@@ -203,6 +203,7 @@ class Dinov3Features(PatchGridMixin):
         self.device = torch.device(device)
         self.patch_size = model.patch_size
         self.dim = model.dim
+        self.appearance_dims = model.dim
         self.short_side = short_side
         # Half precision pays only on GPUs; on CPU it is slower and loses accuracy.
         self.dtype = torch.float16 if fp16 and self.device.type == "cuda" else torch.float32

@@ -117,6 +117,7 @@ class Dinov3OnnxFeatures(PatchGridMixin):
         self.patch_size = int(meta.get(META_PATCH, patch_size))
         out_shape = self.session.get_outputs()[0].shape
         self.dim = int(meta.get(META_DIM, out_shape[-1]))
+        self.appearance_dims = self.dim
         if self.patch_size != patch_size:
             raise ValueError(f"{self.path} was exported with patch size {self.patch_size}, config says {patch_size}")
         self.input_name = self.session.get_inputs()[0].name

@@ -151,3 +151,22 @@ def test_propagation_keeps_identity_on_a_moving_camera(classical):
     ious = [iou(pred == i, slots == i) for i in range(1, len(OBJECTS) + 1)]
     assert min(ious) > 0.5, ious
     assert np.mean(ious) > 0.65, ious
+
+
+def test_appearance_channels_do_not_depend_on_depth():
+    """Mask prototypes (eq. 2) use the first ``appearance_dims`` channels only: the same
+    colours seen at another distance or slant give the same appearance, not the same depth
+    block."""
+    from services.tracker.core import appearance
+
+    feats = make_dense_features(DenseFeaturesConfig(backend="classical", short_side=240, patch_size=8))
+    rgb, depth, _ = render(0.0)
+    near = feats(rgb, depth).numpy()
+    slanted = depth * np.linspace(0.6, 1.4, depth.shape[1], dtype=np.float32)[None, :]
+    far = feats(rgb, slanted).numpy()
+    assert feats.appearance_dims < feats.dim
+    assert np.abs(near - far).max() > 0.05  # the full descriptor sees the change
+    a, b = appearance(near, feats.appearance_dims), appearance(far, feats.appearance_dims)
+    assert a.shape[-1] == feats.appearance_dims
+    np.testing.assert_allclose(np.linalg.norm(a, axis=-1), 1.0, atol=1e-5)
+    np.testing.assert_allclose(a, b, atol=1e-5)

@@ -180,6 +180,7 @@ def test_loader_grid_and_norm(loaded, frame, loader):
     out = feats(frame)
     # 48x80 at short side 64: 64x107 -> 64x112, a 4x7 grid of 384-d unit features.
     assert tuple(out.shape) == (4, 7, 384) == (*feats.grid_shape(48, 80), feats.dim)
+    assert feats.appearance_dims == feats.dim  # DINOv3 patch features describe appearance whole
     assert out.dtype == torch.float32 and feats.patch_size == 16 and feats.name == "dinov3"
     assert torch.allclose(out.norm(dim=-1), torch.ones(4, 7), atol=1e-5)
 
@@ -250,7 +251,7 @@ def test_onnx_export_matches_torch(weights, loaded, tmp_path):
     path = export_dinov3_onnx(cfg_for("transformers", weights["transformers"]), tmp_path / "dinov3.onnx")
     torch_feats = loaded["transformers"]
     onnx_feats = make_dense_features(cfg_for("timm", path, backend="dinov3_onnx"))
-    assert onnx_feats.name == "dinov3_onnx" and onnx_feats.dim == 384 and onnx_feats.patch_size == 16
+    assert onnx_feats.name == "dinov3_onnx" and onnx_feats.dim == onnx_feats.appearance_dims == 384 and onnx_feats.patch_size == 16
     rng = np.random.default_rng(2)
     for shape in [(48, 80, 3), (80, 64, 3), (64, 64, 3)]:
         rgb = rng.integers(0, 256, shape, dtype=np.uint8)

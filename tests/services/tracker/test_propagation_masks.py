@@ -78,3 +78,16 @@ def test_upsample_of_one_hot_blocks_is_exact_inside_blocks():
     out = upsample_labels(y, 96, 128)
     assert out[16 * 1 + 8 : 16 * 5 - 8, 16 * 2 + 8 : 16 * 6 - 8].eq(3).all()
     assert out[:8].eq(0).all() and out[:, :24].eq(0).all()
+
+
+def test_confidence_is_the_upsampled_peak_probability():
+    from services.tracker.propagation import upsample_confidence
+
+    soft = torch.zeros(2, 2, 3)
+    soft[0, 0] = torch.tensor([0.0, 1.0, 0.0])
+    soft[0, 1] = torch.tensor([0.0, 1.0, 0.0])
+    soft[1] = torch.tensor([0.2, 0.4, 0.4])  # a bottom row where two tracks tie
+    conf = upsample_confidence(soft, 8, 8)
+    assert conf.shape == (8, 8) and conf.dtype == np.uint8
+    assert (conf[:2] == 255).all() and (conf[-2:] == round(0.4 * 255)).all()
+    assert (np.diff(conf[:, 0].astype(int)) <= 0).all()  # falls off across the border

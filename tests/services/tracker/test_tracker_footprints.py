@@ -65,6 +65,16 @@ def test_hidden_points_are_dropped():
     assert iou(project_footprint(fp, np.zeros_like(depth), K, pose()), square(16, 20)) > 0.95
 
 
+def test_points_the_camera_sees_through_are_dropped():
+    depth = np.full((48, 64), 2.0, np.float32)
+    fp = mask_footprint(square(16, 20), depth, K, pose())
+    # The object has gone: where it stood the camera now sees the wall 1 m behind it.
+    gone = depth.copy()
+    gone[:, 26:] = 3.0
+    seen = project_footprint(fp, gone, K, pose())
+    assert seen[:, 20:25].any() and not seen[:, 27:].any()
+
+
 def test_no_depth_no_footprint():
     assert mask_footprint(square(0, 0), np.zeros((48, 64), np.float32), K, pose()) is None
 

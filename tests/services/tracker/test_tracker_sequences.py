@@ -1,6 +1,7 @@
 """The tracker core over a synthetic sequence (issue 6): late keyframe masks, a keyframe_vl
-outage, the per-frame baseline, and the tracking acceptance on the ``small`` preset with the
-simulated segmenter at default noise and classical features (deploy/configs/synthetic.yaml).
+outage, the per-frame baseline, and the tracking acceptance on the ``small`` and ``revisit``
+presets with the simulated segmenter at default noise and classical features
+(deploy/configs/synthetic.yaml).
 
 One ``small`` sequence (320 x 240, 120 frames) is generated per module run and shared; each
 tracker pass over it takes a few seconds on a 2-core CPU.
@@ -163,36 +164,54 @@ def test_per_frame_mode_gives_the_same_output_type(small):
         assert a.track_ids.shape == b.track_ids.shape and a.track_ids.dtype == b.track_ids.dtype == np.int32
         assert b.keyframe and all(o.keyframe for o in b.tracks)
     assert not prop[1].keyframe
+    # Propagated frames say how sure eq. 1 was of each pixel's track; keyframe masks do not.
+    assert prop[0].confidence is None and all(b.confidence is None for b in per_frame)
+    conf = prop[1].confidence
+    assert conf is not None and conf.shape == prop[1].track_ids.shape and conf.dtype == np.uint8
+    assert conf.max() == 255 and conf.min() < 200
     # Identities carry over between consecutive per-frame segmentations.
     shared = set(np.unique(per_frame[0].track_ids)) & set(np.unique(per_frame[1].track_ids))
     assert len(shared - {-1}) >= 0.5 * (len(np.unique(per_frame[0].track_ids)) - 1)
 
 
-def test_tracking_quality_on_the_small_preset(small, reference):
-    """What the tracker reaches on the small preset with the simulated segmenter at default
-    noise and classical features (measured: mean IoU 0.74, IDF1 0.65, 1.04 switches per object
-    per 100 frames), with a margin against regressions."""
+def test_issue_acceptance_on_the_small_preset(small, reference):
+    """Issue 6: mean IoU of propagated masks >= 0.6 on non-keyframes, IDF1 >= 0.7 and fewer
+    than 1 identity switch per object per 100 frames, simulated segmenter at default noise,
+    classical features, against the per-frame ground-truth instance images (measured: mean
+    IoU 0.76, IDF1 0.714, 0.46 switches per object per 100 frames)."""
     seq, frames = small
     m = metrics(reference, frames)
     assert m["n_frames"] == 120 and m["n_keyframes"] == 15
     assert m["mean_iou"] >= 0.6, m
-    assert m["idf1"] >= 0.62, m
-    assert m["id_switches_per_100_frames_per_object"] < 1.25, m
+    assert m["idf1"] >= 0.7, m
+    assert m["id_switches_per_100_frames_per_object"] < 1.0, m
 
 
-@pytest.mark.xfail(
-    reason="issue 6 asks IDF1 >= 0.7 and < 1 switch per object per 100 frames; the tracker reaches "
-    "IDF1 0.65 and 1.04 (see the test above): propagated classical features lose small objects "
-    "between keyframes and re-identification fails where the classical prototypes change with the "
-    "viewpoint",
-    strict=False,
-)
-def test_issue_acceptance_on_the_small_preset(small, reference):
-    """Issue 6: mean IoU of propagated masks >= 0.6 on non-keyframes, IDF1 >= 0.7 and fewer
-    than 1 identity switch per object per 100 frames, simulated segmenter at default noise,
-    classical features, against the per-frame ground-truth instance images."""
-    seq, frames = small
-    m = metrics(reference, frames)
+@pytest.mark.timeout(1200)
+def test_issue_acceptance_on_the_revisit_preset(tmp_path_factory):
+    """The same on the ``revisit`` preset (640 x 480, 600 frames: out of the first room for
+    more than 8 m and back), where identities must survive leaving the view for hundreds of
+    frames (measured: mean IoU 0.81, IDF1 0.734, 0.74 switches per object per 100 frames).
+    About 5 minutes on 2 cores, half of it rendering; frames are scored as they come out, so
+    the sequence is never held in memory."""
+    from shared.synth import run_synth
+
+    seq = tmp_path_factory.mktemp("synth") / "revisit"
+    run_synth("revisit", 0, seq, progress=False)
+    reader = open_sequence(seq, "replica")
+    core, kf = build(seq)
+    keys: set[int] = set()
+
+    def scored() -> Iterable[tuple[int, np.ndarray, np.ndarray]]:
+        for i in range(len(reader)):
+            frame = reader.frame(i)
+            (out,) = run(core, kf, [frame])
+            if out.keyframe:
+                keys.add(frame.frame_index)
+            yield frame.frame_index, out.track_ids, frame.instances
+
+    m = evaluate_track_maps(scored(), keys)
+    assert m["n_frames"] == 600 and m["n_keyframes"] == 75
     assert m["mean_iou"] >= 0.6, m
     assert m["idf1"] >= 0.7, m
     assert m["id_switches_per_100_frames_per_object"] < 1.0, m
