@@ -30,16 +30,15 @@ clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache benchmarks/out
 
 # The demo: the synthetic demo scene (three furnished rooms, 900 RGB-D frames with ground
-# truth), mapped in-process with simulated perception, then scored against the ground truth.
+# truth) through the whole distributed system (one process per service over loopback Zenoh),
+# example queries through the live query service, then the report, renders and recordings.
+# The paper's models are used when their weights are present, simulated perception otherwise;
+# DEMO_CONFIG=FILE forces a config.
 DEMO_OUT    ?= demo_out
-DEMO_CONFIG ?= deploy/configs/synthetic.yaml
+DEMO_CONFIG ?=
 .PHONY: demo
 $(DEMO_OUT)/sequence/traj.txt: | $(STAMP)
 	$(BIN)/trackgraph synth --preset demo --seed 0 --out $(DEMO_OUT)/sequence --overwrite
 
 demo: $(STAMP) $(DEMO_OUT)/sequence/traj.txt
-	$(BIN)/trackgraph map $(DEMO_OUT)/sequence --config $(DEMO_CONFIG) --out $(DEMO_OUT)/map
-	$(BIN)/trackgraph eval instances --pred $(DEMO_OUT)/map --gt $(DEMO_OUT)/sequence
-	$(BIN)/trackgraph eval openlex3d --pred $(DEMO_OUT)/map --gt $(DEMO_OUT)/sequence
-	@echo "scene:    $(DEMO_OUT)/sequence (pictures: contact_sheet.png, topdown.png)"
-	@echo "map:      $(DEMO_OUT)/map (mesh.ply with segment ids, graph/ snapshots, OpenLex3D export, run.json)"
+	$(BIN)/trackgraph demo --out $(DEMO_OUT) $(if $(DEMO_CONFIG),--config $(DEMO_CONFIG))

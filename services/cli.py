@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -151,6 +152,14 @@ def _cmd_eval_tracking(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_eval_queries(args: argparse.Namespace) -> int:
+    from services.query.evaluate import eval_queries
+
+    result = eval_queries(args.pred, args.gt, min_size_m=args.min_size, gallery=args.gallery, details=args.json)
+    _print_metrics(result, args.json, ["top1_hit_rate", "n_hits", "n_queries", "min_size_m", "gallery"])
+    return 0
+
+
 def _cmd_eval_segmenter(args: argparse.Namespace) -> int:
     from services.keyframe_vl.evaluate import eval_segmenter
 
@@ -202,6 +211,185 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
         cfg = prepare_config(cfg, args.sequence)
     serve(args.service, cfg, out=args.out, resume=args.resume, exit_at_end=args.exit_at_end)
+    return 0
+
+
+def _query_request(args: argparse.Namespace, text: str | None):
+    import numpy as np
+
+    from shared.messages.rpc import QueryRequest
+
+    image = None
+    if args.image is not None:
+        from PIL import Image, UnidentifiedImageError
+
+        try:
+            with Image.open(args.image) as im:
+                image = np.asarray(im.convert("RGB"))
+        except (OSError, UnidentifiedImageError) as exc:
+            raise CommandError(f"{args.image}: not a readable image ({exc})") from None
+    if (text is None) == (image is None):
+        raise CommandError("give a query TEXT or --image FILE (one of them)")
+    if (args.near is None) != (args.radius is None):
+        raise CommandError("--near X Y Z and --radius R go together")
+    try:
+        return QueryRequest(
+            text=text, image=image, top_k=args.top_k, room=args.room, radius=args.radius, gallery=args.gallery,
+            center=None if args.near is None else np.asarray(args.near, np.float64),
+        )  # fmt: skip
+    except ValueError as exc:
+        raise CommandError(f"bad query: {'; '.join(str(exc).splitlines()[:2])}") from None
+
+
+def _print_hits(hits, as_json: bool, title: str) -> None:
+    from services.query.core import hit_rows
+
+    rows = hit_rows(hits)
+    if as_json:
+        print(json.dumps(rows))
+        return
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=title, show_header=True, header_style="bold")
+    for col in ("rank", "segment", "score", "centroid (m)", "size (m)", "room", "best track"):
+        table.add_column(col, justify="right" if col not in ("centroid (m)", "size (m)") else "left")
+    for i, (h, r) in enumerate(zip(hits, rows, strict=True), 1):
+        size = (h.bbox_max - h.bbox_min).tolist()
+        table.add_row(
+            str(i), str(h.segment), f"{h.score:.3f}", " ".join(f"{v:+.2f}" for v in r["centroid"]),
+            " x ".join(f"{v:.2f}" for v in size), "-" if h.room is None else str(h.room),
+            "-" if h.best_track is None else str(h.best_track),
+        )  # fmt: skip
+    Console().print(table if hits else f"{title}: no segments")
+
+
+def _cmd_query(args: argparse.Namespace) -> int:
+    pos = list(args.args)
+    if args.live:
+        if len(pos) > 1:
+            raise CommandError(f"--live takes one query TEXT, got {len(pos)} arguments")
+        text = pos[0] if pos else None
+        req = _query_request(args, text)
+        from services.query.client import QueryClient
+
+        cfg = _load_or_default(args.config)
+        transport = cfg.transport
+        if args.connect:
+            transport = transport.model_copy(update={"connect": args.connect})
+        with QueryClient(transport, robot_id=args.robot or cfg.robot_id, timeout_s=args.timeout) as client:
+            reply = client.ask(req)
+        if reply.error is not None:
+            raise CommandError(f"query refused: {reply.error}")
+        _print_hits(reply.hits, args.json, f"{text or args.image} (live, graph version {reply.graph_seq})")
+        return 0
+    if not pos or len(pos) > 2:
+        raise CommandError('give MAP_DIR and a query TEXT (or MAP_DIR --image FILE), or --live "TEXT"')
+    map_dir, text = Path(pos[0]), (pos[1] if len(pos) > 1 else None)
+    if not map_dir.is_dir():
+        raise CommandError(f"{map_dir}: no such map folder (for a running system use --live)")
+    req = _query_request(args, text)
+    from services.query.core import QueryError
+    from services.query.offline import OfflineQueries, map_config
+
+    try:
+        reply = OfflineQueries(map_dir, map_config(map_dir, args.config)).ask(req)
+    except QueryError as exc:
+        raise CommandError(str(exc)) from None
+    if reply.error is not None:
+        raise CommandError(f"query refused: {reply.error}")
+    _print_hits(reply.hits, args.json, f"{text or args.image} ({map_dir})")
+    return 0
+
+
+def _cmd_view(args: argparse.Namespace) -> int:
+    from services.fusion.store import MapStore
+
+    map_dir = args.map_dir
+    if not (map_dir / "graph").is_dir():
+        raise CommandError(f"{map_dir}: no graph/ folder (is it a trackgraph map folder?)")
+    queries = {}
+    if args.query:
+        from services.query.core import QueryError
+        from services.query.offline import OfflineQueries, map_config
+        from shared.messages.rpc import QueryRequest
+
+        try:
+            offline = OfflineQueries(map_dir, map_config(map_dir, args.config))
+        except QueryError as exc:
+            raise CommandError(str(exc)) from None
+        for text in args.query:
+            reply = offline.ask(QueryRequest(text=text, top_k=args.top_k))
+            if reply.error is not None:
+                raise CommandError(f"query {text!r} refused: {reply.error}")
+            queries[text] = reply.hits
+    from services.viewer.recording import write_map_recording
+
+    out = args.out or map_dir / "map.rrd"
+    try:
+        write_map_recording(map_dir, out, queries=queries, sequence_dir=args.sequence, max_frames=args.frames)
+    except FileNotFoundError as exc:
+        raise CommandError(str(exc)) from None
+    print(f"wrote {out}  (open it with: rerun {out})")
+    if args.png is not None:
+        import numpy as np
+
+        from services.viewer.render import render_map_png, render_query_sheet
+
+        state = MapStore(map_dir / "graph").load()
+        traj = np.asarray(state.extra.get("trajectory", np.zeros((0, 3))))
+        args.png.mkdir(parents=True, exist_ok=True)
+        print(f"wrote {render_map_png(state.snapshot, args.png / 'map.png', trajectory=traj)}")
+        for i, (text, hits) in enumerate(queries.items()):
+            path = render_map_png(state.snapshot, args.png / f"query_{i}.png", trajectory=traj, hits=hits, query_text=text, title=f"query {text!r}")
+            print(f"wrote {path}")
+        if queries:
+            print(f"wrote {render_query_sheet(state.snapshot, args.png / 'queries.png', queries, trajectory=traj)}")
+    if args.open:
+        import shutil
+
+        viewer = shutil.which("rerun")
+        if viewer is None:
+            raise CommandError("the rerun viewer is not on PATH (pip install rerun-sdk gives it)")
+        os.execv(viewer, [viewer, str(out)])
+    return 0
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from services.demo import run_demo
+    from services.launch import LaunchError
+
+    try:
+        r = run_demo(args.out, preset=args.preset, seed=args.seed, config=args.config)
+    except LaunchError as exc:
+        raise CommandError(f"the demo's launch failed: {exc}") from None
+    if args.json:
+        print(json.dumps(r))
+        return 0
+    m = r["metrics"]
+    print(f"perception: {r['perception']}")
+    print(f"mapped {r['frames']} frames as separate processes in {r['timings'].get('distributed_map_s', 0):.0f} s: {r['segments']} segments")
+    for q in r["queries"]:
+        top = q["hits"][0] if q["hits"] else None
+        print(f"  {q['query']!r:<28} {q['ms']:6.0f} ms  -> " + (f"segment {top['segment']} ({top['object']}, IoU {top['iou']:.2f})" if top else "no hit"))
+    print(f"instance AP50 {m['ap50']:.3f}, top-1 hits of synonym queries over 20 cm {m['top1_synonym_queries_over_20cm']:.3f}, synonyms {m['synonyms']:.3f}")
+    for what, path in r["files"].items():
+        print(f"{what:<15} {path}")
+    return 0
+
+
+def _cmd_launch(args: argparse.Namespace) -> int:
+    from services.launch import LaunchError, run_launch
+
+    try:
+        summary = run_launch(args.file, sequence=args.sequence, out=args.out, log_dir=args.log_dir, status=not args.json)
+    except LaunchError as exc:
+        raise CommandError(str(exc)) from None
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        for name, s in summary["services"].items():
+            print(f"{name:<12} {s['state']:<9} restarts {s['restarts']}  log {s['log']}")
     return 0
 
 
@@ -268,6 +456,14 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--json", action="store_true")
     tr.set_defaults(func=_cmd_eval_tracking)
 
+    qe = evsub.add_parser("queries", help="top-1 hits of the query service's answers (eq. 10) for the ground truth's synonym queries")
+    qe.add_argument("--pred", type=Path, required=True, metavar="MAP_DIR")
+    qe.add_argument("--gt", type=Path, required=True, metavar="GT_DIR")
+    qe.add_argument("--min-size", type=float, default=0.2, metavar="M", help="only queries for objects larger than this (m)")
+    qe.add_argument("--gallery", choices=["max", "mean"], help="override the map config's gallery scoring")
+    qe.add_argument("--json", action="store_true", help='print {"top1_hit_rate", "n_hits", "n_queries", ..., "per_query"}')
+    qe.set_defaults(func=_cmd_eval_queries)
+
     sg = evsub.add_parser("segmenter", help="per-keyframe mask quality against ground-truth instances")
     sg.add_argument("--seq", type=Path, required=True, metavar="SEQ_DIR")
     sg.add_argument("--config", type=Path, metavar="FILE")
@@ -290,14 +486,58 @@ def build_parser() -> argparse.ArgumentParser:
     ex.set_defaults(func=_cmd_export_onnx)
 
     sv = sub.add_parser("serve", help="run one service as this process, until Ctrl-C")
-    sv.add_argument("service", choices=["keyframe_vl", "tracker", "fusion"])
+    sv.add_argument("service", choices=["keyframe_vl", "tracker", "fusion", "query", "viewer"])
     sv.add_argument("--config", type=Path, metavar="FILE")
     sv.add_argument("--connect", action="append", metavar="ENDPOINT", help="router endpoint(s)")
-    sv.add_argument("--out", type=Path, metavar="MAP_DIR", help="fusion: where snapshots and the final map go")
+    sv.add_argument("--out", type=Path, metavar="PATH", help="fusion: the map folder (snapshots, final map); viewer: the .rrd recording")
     sv.add_argument("--resume", action="store_true", help="fusion: continue from the last snapshot in MAP_DIR")
     sv.add_argument("--exit-at-end", action="store_true", help="fusion: stop once the replayed sequence is mapped")
     sv.add_argument("--sequence", type=Path, metavar="SEQ_DIR", help="a synthetic sequence whose ground truth the simulated backends use")
     sv.set_defaults(func=_cmd_serve)
+
+    vw = sub.add_parser("view", help="a Rerun recording (.rrd) of a saved map, optional query hits and PNG renders")
+    vw.add_argument("map_dir", type=Path, metavar="MAP_DIR")
+    vw.add_argument("--out", type=Path, metavar="FILE.rrd", help="default MAP_DIR/map.rrd")
+    vw.add_argument("--query", action="append", metavar="TEXT", help="highlight this query's hits (repeatable)")
+    vw.add_argument("--top-k", type=int, default=3, metavar="K", help="hits per query")
+    vw.add_argument("--sequence", type=Path, metavar="SEQ_DIR", help="add tracked frames (needs map --save-tracks)")
+    vw.add_argument("--frames", type=int, default=60, metavar="N", help="at most this many tracked frames")
+    vw.add_argument("--png", type=Path, metavar="DIR", help="also render top-down PNGs of the map and of each query")
+    vw.add_argument("--config", type=Path, metavar="FILE", help="the query encoder's config (default MAP_DIR/config.yaml)")
+    vw.add_argument("--open", action="store_true", help="open the recording in the Rerun viewer")
+    vw.set_defaults(func=_cmd_view)
+
+    dm = sub.add_parser("demo", help="the synthetic demo scene through the whole distributed system, with example queries and a report")
+    dm.add_argument("--out", type=Path, default=Path("demo_out"), metavar="DIR")
+    dm.add_argument("--preset", choices=["small", "demo", "revisit"], default="demo")
+    dm.add_argument("--seed", type=int, default=0)
+    dm.add_argument("--config", type=Path, metavar="FILE", help="default: the paper's models if their weights are present, else simulated perception")
+    dm.add_argument("--json", action="store_true", help="print the report's figures as JSON")
+    dm.set_defaults(func=_cmd_demo)
+
+    la = sub.add_parser("launch", help="start a router and every service of a launch file as separate processes")
+    la.add_argument("file", type=Path, metavar="LAUNCH_FILE", help="e.g. deploy/local.yaml")
+    la.add_argument("--sequence", type=Path, metavar="SEQ_DIR", help="what the source replays (overrides the file)")
+    la.add_argument("--out", type=Path, metavar="MAP_DIR", help="fusion's map folder (overrides the file)")
+    la.add_argument("--log-dir", type=Path, metavar="DIR", help="one log per process (default MAP_DIR/logs)")
+    la.add_argument("--json", action="store_true", help="no status table; print the final summary as JSON")
+    la.set_defaults(func=_cmd_launch)
+
+    q = sub.add_parser("query", help='ranked segments for a text or image query: MAP_DIR "TEXT", or --live "TEXT"')
+    q.add_argument("args", nargs="*", metavar="[MAP_DIR] TEXT", help='a saved map and the query, or only the query with --live')
+    q.add_argument("--live", action="store_true", help="ask the running query service over Zenoh")
+    q.add_argument("--image", type=Path, metavar="FILE", help="an image query instead of text")
+    q.add_argument("--top-k", type=int, metavar="K")
+    q.add_argument("--room", type=int, metavar="ID", help="only segments in this room")
+    q.add_argument("--near", type=float, nargs=3, metavar=("X", "Y", "Z"), help="only segments within --radius of this point")
+    q.add_argument("--radius", type=float, metavar="M")
+    q.add_argument("--gallery", choices=["max", "mean"], help="eq. 10 max over the gallery (default) or the mean feature")
+    q.add_argument("--config", type=Path, metavar="FILE", help="offline: the encoder's config (default MAP_DIR/config.yaml); live: transport and robot id")
+    q.add_argument("--connect", action="append", metavar="ENDPOINT", help="live: router endpoint(s)")
+    q.add_argument("--robot", metavar="ID", help="live: robot id (default: the config's)")
+    q.add_argument("--timeout", type=float, metavar="S", help="live: seconds to wait for the answer")
+    q.add_argument("--json", action="store_true", help='print [{"segment", "score", "centroid", "bbox", "room", "best_track"}]')
+    q.set_defaults(func=_cmd_query)
 
     c = sub.add_parser("config", help="inspect and validate config files")
     csub = c.add_subparsers(dest="config_command", required=True, metavar="ACTION")

@@ -6,6 +6,7 @@ segmented and embedded at once, so every keyframe's masks are applied before the
 
 from __future__ import annotations
 
+import io
 import json
 import logging
 import platform
@@ -20,6 +21,7 @@ from services.source.core import planned_indices
 from shared.config.base import save_resolved
 from shared.config.root import TrackGraphConfig
 from shared.datasets import open_sequence
+from shared.datasets.base import DatasetError
 from shared.io import atomic_write_bytes, atomic_write_text
 
 log = logging.getLogger(__name__)
@@ -83,9 +85,18 @@ def run_map(
     writer = TrackWriter(out) if save_tracks else None
     bar = _bar(progress, len(plan))
     t_start = time.perf_counter()
+    rejected: list[str] = []
     try:
         for i in plan:
-            frame = reader.frame(i)
+            try:
+                frame = reader.frame(i)
+            except DatasetError as exc:
+                # one corrupt frame (a truncated PNG, a NaN pose) must not cost the map
+                rejected.append(str(exc))
+                log.warning("frame %d refused: %s", i, exc)
+                if bar is not None:
+                    bar.update(1)
+                continue
             req = tracker.begin_frame(frame)
             if req is not None and keyframes is not None:
                 image, masks, _ = keyframes.segment(req)
@@ -107,22 +118,35 @@ def run_map(
         if writer is not None:
             writer.close()
     seconds = time.perf_counter() - t_start
+    if len(rejected) == len(plan) and plan:
+        raise DatasetError(f"{seq_dir}: no frame could be read; the first error: {rejected[0]}")
 
-    snapshot = fusion.snapshot(with_mesh=True)
+    snapshot = fusion.snapshot(whole_map=True)
     MapStore(out / "graph", robot_id=cfg.robot_id).save(snapshot, extra_state=fusion.state_dict(), metadata={"sequence": str(seq_dir)})
     export_map(out, fusion)
-    summary = {
-        "frames": len(plan),
+    summary = run_summary(cfg, fusion, snapshot, frames=len(plan) - len(rejected), seconds=seconds, sequence=seq_dir)
+    summary["setup_seconds"] = round(t_start - t0, 3)
+    summary["frames_rejected"] = len(rejected)
+    summary["rejected"] = rejected[:20]
+    atomic_write_text(out / "run.json", json.dumps(summary, indent=2))
+    log.info("mapped %d frames in %.1f s (%.2f Hz): %d segments", len(plan), seconds, summary["hz"] or 0, summary["segments"])
+    return summary
+
+
+def run_summary(cfg: TrackGraphConfig, fusion, snapshot, *, frames: int, seconds: float, sequence: Path | str | None) -> dict[str, Any]:
+    """``run.json``: what was mapped, how fast, with what, on what (the in-process pipeline
+    and the fusion service write the same keys; RAM and GPU memory are this process's)."""
+    return {
+        "frames": frames,
         "seconds": round(seconds, 3),
-        "hz": round(len(plan) / seconds, 3) if seconds > 0 else None,
+        "hz": round(frames / seconds, 3) if seconds > 0 else None,
         "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
         "segments": len(fusion.segments.segments),
-        "setup_seconds": round(t_start - t0, 3),
         "gpu_peak_mb": _gpu_peak_mb(),
         "graph_seq": snapshot.graph_seq,
         "places": len(snapshot.places),
         "rooms": len(snapshot.rooms),
-        "sequence": str(seq_dir),
+        "sequence": None if sequence is None else str(sequence),
         "backends": {
             "tracker": cfg.tracker.mode,
             "dense_features": cfg.tracker.features.backend,
@@ -132,17 +156,18 @@ def run_map(
         "voxel_size": cfg.fusion.tsdf.voxel_size,
         "machine": {"platform": platform.platform(), "python": platform.python_version()},
     }
-    atomic_write_text(out / "run.json", json.dumps(summary, indent=2))
-    log.info("mapped %d frames in %.1f s (%.2f Hz): %d segments", len(plan), seconds, summary["hz"] or 0, summary["segments"])
-    return summary
+
+
+SEGMENT_IDS_FILE = "segment_ids.npy"
+"""Row k of the OpenLex3D export is segment ``segment_ids[k]``."""
 
 
 def export_map(out: Path, fusion) -> None:
-    """``mesh.ply`` with segment ids, and the OpenLex3D prediction (point cloud, one embedding
-    per segment, a segment index per point)."""
+    """``mesh.ply`` with segment ids, the OpenLex3D prediction (point cloud, one embedding
+    per segment, a segment index per point) and each row's segment id."""
     from shared.eval.prediction import write_prediction
 
-    chunk = fusion.mesh_chunk()
+    chunk = fusion.full_mesh_chunk()
     atomic_write_bytes(out / "mesh.ply", ply_bytes(chunk.vertices, chunk.colors, chunk.faces, chunk.segment_ids))
     segs = [s for s in fusion.segments.segments.values() if s.num_vertices]
     dim = next((len(next(iter(s.gallery.values()))) for s in segs if s.gallery), 1)
@@ -155,6 +180,11 @@ def export_map(out: Path, fusion) -> None:
         write_prediction(out, np.concatenate(points), np.concatenate(index), np.stack(emb))
     else:
         write_prediction(out, np.zeros((0, 3), np.float32), np.zeros(0, np.int64), np.zeros((0, dim), np.float32))
+    # Which segment each OpenLex3D instance row is, so evaluations of the query service can
+    # score its hits (segment ids) on the same points.
+    buf = io.BytesIO()
+    np.save(buf, np.array([s.id for s in sorted(segs, key=lambda s: s.id)], np.int64))
+    atomic_write_bytes(out / SEGMENT_IDS_FILE, buf.getvalue())
 
 
 def segment_embedding(segment, dim: int) -> Annotated[np.ndarray, "(D,) float32"]:

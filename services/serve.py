@@ -12,7 +12,7 @@ from shared.config.root import TrackGraphConfig
 
 log = logging.getLogger(__name__)
 
-SERVICES = ("keyframe_vl", "tracker", "fusion")
+SERVICES = ("keyframe_vl", "tracker", "fusion", "query", "viewer")
 
 
 def build_node(service: str, cfg: TrackGraphConfig, *, out: Path | None = None, resume: bool = False):
@@ -30,6 +30,16 @@ def build_node(service: str, cfg: TrackGraphConfig, *, out: Path | None = None, 
         if out is None:
             raise ValueError("fusion needs --out MAP_DIR for its snapshots and the final map")
         return FusionNode(cfg, out, resume=resume)
+    if service == "query":
+        from services.query.node import QueryNode
+
+        return QueryNode(cfg)
+    if service == "viewer":
+        from services.viewer.node import ViewerNode
+
+        if out is None:
+            raise ValueError("the viewer needs --out FILE.rrd for its recording")
+        return ViewerNode(cfg, out)
     raise ValueError(f"unknown service {service!r}; expected one of {', '.join(SERVICES)}")
 
 

@@ -35,6 +35,10 @@ class Topics:
         return f"{self.root}/frames/end"
 
     @property
+    def frame_ack(self) -> str:
+        return f"{self.root}/frames/ack"
+
+    @property
     def keyframe_request(self) -> str:
         return f"{self.root}/keyframe/request"
 
@@ -53,6 +57,10 @@ class Topics:
     @property
     def tracks_features(self) -> str:
         return f"{self.root}/tracks/features"
+
+    @property
+    def tracks_end(self) -> str:
+        return f"{self.root}/tracks/end"
 
     @property
     def graph_delta(self) -> str:
@@ -83,8 +91,8 @@ class Topics:
     def all_keys(self) -> dict[str, str]:
         """Name -> key of every data key (for docs, ACL files and fuzz tests)."""
         names = (
-            "frames", "end_of_sequence", "keyframe_request", "keyframe_masks", "keyframe_features",
-            "tracks_frame", "tracks_features", "graph_delta", "graph_snapshot", "vl_embed", "query",
+            "frames", "end_of_sequence", "frame_ack", "keyframe_request", "keyframe_masks", "keyframe_features",
+            "tracks_frame", "tracks_features", "tracks_end", "graph_delta", "graph_snapshot", "vl_embed", "query",
         )  # fmt: skip
         return {n: getattr(self, n) for n in names}
 

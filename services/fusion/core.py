@@ -126,8 +126,32 @@ class FusionCore:
         seg = self.segments.vertex_segments() if len(mesh) else np.zeros(0, np.int32)
         return MeshChunk(vertices=mesh.vertices, colors=mesh.colors, faces=mesh.faces, segment_ids=seg.astype(np.int32))
 
-    def snapshot(self, with_mesh: bool = False) -> GraphSnapshot:
-        return self.graph.snapshot(with_mesh=with_mesh)
+    def full_mesh_chunk(self) -> MeshChunk:
+        """The whole map's mesh: the active window's, and the archived blocks' with each
+        vertex's segment from its winning track (a final export; it runs marching cubes over
+        the archive)."""
+        active = self.mesh_chunk()
+        arch = self.tsdf.extract_archived_mesh()
+        if len(arch) == 0:
+            return active
+        win = arch.winners()
+        seg_of = {int(t): s for t in np.unique(win[win >= 0]) if (s := self.segments.segment_of_track(int(t))) is not None}
+        seg = np.array([seg_of.get(int(t), -1) for t in win], np.int32)
+        n = len(active.vertices)
+        return MeshChunk(
+            vertices=np.concatenate([active.vertices, arch.vertices]),
+            colors=np.concatenate([active.colors, arch.colors]),
+            faces=np.concatenate([active.faces, arch.faces + n]).astype(np.int32),
+            segment_ids=np.concatenate([active.segment_ids, seg]),
+        )
+
+    def snapshot(self, with_mesh: bool = False, whole_map: bool = False) -> GraphSnapshot:
+        """The graph; ``with_mesh`` adds the active window's mesh, ``whole_map`` the whole
+        map's instead (for saving a finished map)."""
+        snap = self.graph.snapshot(with_mesh=with_mesh and not whole_map)
+        if whole_map:
+            snap = snap.model_copy(update={"mesh": self.full_mesh_chunk()})
+        return snap
 
     def _add_surface(self, vertices: Annotated[np.ndarray, "(V, 3) float32"]) -> None:
         """Keep one point per 5 cm cell of everything ever meshed: places and rooms must cover

@@ -146,6 +146,10 @@ class Segment:
     def to_node(self, room: int | None = None) -> SegmentNode:
         """The wire form (``graph/delta`` and snapshots)."""
         rows, ids = gallery_rows(self.gallery)
+        total = sum(max(self.track_weight(t), 0.0) for t in self.tracks)
+        # Three decimals: a share only meets a threshold, and finer values would change the
+        # node (and resend it) at every update.
+        shares = [round(max(self.track_weight(t), 0.0) / total, 3) if total > 0 else round(1.0 / len(self.tracks), 3) for t in ids]
         return SegmentNode(
             id=self.id,
             centroid=np.asarray(self.centroid, np.float64),
@@ -155,6 +159,7 @@ class Segment:
             dino=np.asarray(self.dino, np.float32),
             gallery=rows,
             gallery_tracks=ids,
+            gallery_weights=shares,
             active=self.active,
             room=room,
             num_vertices=self.num_vertices,

@@ -190,11 +190,13 @@ class HypothesisTSDF:
             out[name] = to_host(arr[index_like(arr, bufs.astype(np.int64))])
         return out
 
-    def _write_blocks(self, keys: np.ndarray, attrs: dict[str, np.ndarray]) -> None:
-        """Insert blocks (new or existing keys) with exactly these voxel arrays."""
+    def _write_blocks(self, keys: np.ndarray, attrs: dict[str, np.ndarray], grid: Any = None) -> None:
+        """Insert blocks (new or existing keys) with exactly these voxel arrays, into the
+        active grid or ``grid``."""
         if len(keys) == 0:
             return
-        hm = self.vbg.hashmap()
+        vbg = self.vbg if grid is None else grid
+        hm = vbg.hashmap()
         kt = self._o3c.Tensor(np.ascontiguousarray(keys, dtype=np.int32)).to(self._dev)
         hm.activate(kt)
         # activate reports no buffer for keys already present; find covers both, and runs after
@@ -204,7 +206,7 @@ class HypothesisTSDF:
             raise RuntimeError("voxel block grid refused blocks")
         bufs = bufs.cpu().numpy().astype(np.int64)
         for name in self._layout:
-            arr = attribute_array(self.vbg, name)
+            arr = attribute_array(vbg, name)
             arr[index_like(arr, bufs)] = like(
                 arr, np.asarray(attrs[name], dtype=self._layout[name][0])
             )
@@ -417,6 +419,22 @@ class HypothesisTSDF:
         return extract_hypothesis_mesh(
             self.vbg, self.cfg.voxel_size, self.res, self.K, self.mesh_weight_threshold
         )
+
+    def extract_archived_mesh(self) -> HypothesisMesh:
+        """Marching cubes over the archived blocks the active grid does not hold again: the
+        map outside the window, for a whole-map export (seams where it meets the window)."""
+        keys = self.archive.keys()
+        if len(keys) == 0:
+            return HypothesisMesh.empty(self.K)
+        _, active = self._active()
+        if len(active):
+            keys = keys[~np.isin(pack_keys(keys), pack_keys(active))]
+        if len(keys) == 0:
+            return HypothesisMesh.empty(self.K)
+        keys, attrs = self.archive.peek(self.archive.lookup(keys))
+        grid = self._new_grid(len(keys) + 16)
+        self._write_blocks(keys, attrs, grid=grid)
+        return extract_hypothesis_mesh(grid, self.cfg.voxel_size, self.res, self.K, self.mesh_weight_threshold)
 
     def hypotheses_at(
         self, points: Annotated[np.ndarray, "(N, 3) world metres"]

@@ -114,6 +114,13 @@ class BlockArchive:
         d = np.linalg.norm(block_centres(self._keys[rows], self.res, voxel_size) - center, axis=1)
         return rows[d <= radius]
 
+    def peek(
+        self, rows: Annotated[np.ndarray, "(M,) int64 archive rows"]
+    ) -> tuple[Annotated[np.ndarray, "(M, 3) int32"], dict[str, np.ndarray]]:
+        """The rows' keys and attribute arrays (copies), leaving them archived."""
+        rows = np.asarray(rows, dtype=np.int64)
+        return self._keys[rows].copy(), {name: a[rows].copy() for name, a in self._attrs.items()}
+
     def take(
         self, rows: Annotated[np.ndarray, "(M,) int64 archive rows"]
     ) -> tuple[Annotated[np.ndarray, "(M, 3) int32"], dict[str, np.ndarray]]:

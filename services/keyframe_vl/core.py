@@ -7,11 +7,11 @@ as soon as they exist and the features when CLIP is done (the tracker never wait
 from __future__ import annotations
 
 import logging
-from collections import OrderedDict
 from typing import Annotated
 
 import numpy as np
 
+from services.keyframe_vl.embedder import Embedder
 from services.keyframe_vl.encoders import make_vl_encoder
 from services.keyframe_vl.segmenters import make_segmenter
 from services.keyframe_vl.types import KeyframeImage, Masks, Segmenter, VLEncoder
@@ -47,7 +47,7 @@ class KeyframeVLCore:
         fp16 = cfg.fp16 and device.startswith("cuda")
         self.segmenter = segmenter or make_segmenter(cfg.segmenter, device=device, fp16=fp16)
         self.encoder = encoder or make_vl_encoder(cfg.vl, device=device, fp16=fp16)
-        self._text_cache: OrderedDict[str, np.ndarray] = OrderedDict()
+        self.embedder = Embedder(self.encoder, cfg.embed_cache_size)
 
     def segment(self, req: KeyframeRequest) -> tuple[KeyframeImage, Masks, KeyframeMasks]:
         image = keyframe_image(req)
@@ -60,24 +60,8 @@ class KeyframeVLCore:
         return MaskFeatures(frame_index=image.frame_index, features=np.asarray(feats, np.float32), model=self.encoder.name)
 
     def embed_text(self, text: str) -> Annotated[np.ndarray, "(D,) float32"]:
-        hit = self._text_cache.get(text)
-        if hit is not None:
-            self._text_cache.move_to_end(text)
-            return hit
-        vec = np.asarray(self.encoder.encode_text([text])[0], np.float32)
-        if self.cfg.embed_cache_size:
-            self._text_cache[text] = vec
-            while len(self._text_cache) > self.cfg.embed_cache_size:
-                self._text_cache.popitem(last=False)
-        return vec
+        return self.embedder.embed_text(text)
 
     def embed(self, req: EmbedRequest) -> EmbedReply:
         """Text or image to the encoder's space; failures come back as an error reply."""
-        try:
-            if req.text is not None:
-                vec = self.embed_text(req.text)
-            else:
-                vec = np.asarray(self.encoder.encode_image(req.image), np.float32)
-        except (ValueError, RuntimeError) as exc:
-            return EmbedReply(model=self.encoder.name, error=str(exc))
-        return EmbedReply(embedding=vec, model=self.encoder.name)
+        return self.embedder.embed(req)

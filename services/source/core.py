@@ -10,12 +10,14 @@ than sent late, so the stream stays real-time.
 from __future__ import annotations
 
 import logging
+import math
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from shared.config.source import SourceConfig
-from shared.datasets.base import SequenceReader
+from shared.datasets.base import DatasetError, SequenceReader
 from shared.messages.frames import Frame
 
 log = logging.getLogger(__name__)
@@ -30,6 +32,8 @@ class ReplayStats:
     dropped: int = 0
     last_frame_index: int = -1
     dropped_indices: list[int] = field(default_factory=list)
+    rejected: int = 0
+    """Frames the reader refused (a corrupt image, a NaN pose): logged, counted, skipped."""
     seconds: float = 0.0
 
 
@@ -37,6 +41,12 @@ def planned_indices(n_frames: int, stride: int = 1, max_frames: int | None = Non
     """Frame indices to replay: every ``stride``-th, at most ``max_frames`` of them."""
     idx = list(range(0, n_frames, stride))
     return idx[:max_frames] if max_frames is not None else idx
+
+
+def replay_plan(n_frames: int, cfg: SourceConfig) -> list[tuple[int, int]]:
+    """(reader index, published frame index) of every frame to send, ``cfg.loops`` laps."""
+    plan = planned_indices(n_frames, cfg.stride, cfg.max_frames)
+    return [(i, lap * n_frames + i) for lap in range(cfg.loops) for i in plan]
 
 
 def replay(
@@ -48,13 +58,17 @@ def replay(
     sleep: Callable[[float], None] = time.sleep,
     should_stop: Callable[[], bool] = lambda: False,
     on_progress: Callable[[ReplayStats], None] | None = None,
+    pace: Callable[[int], None] | None = None,
 ) -> ReplayStats:
-    """Send the planned frames of ``reader`` through ``publish`` under ``cfg.mode``."""
-    plan = planned_indices(len(reader), cfg.stride, cfg.max_frames)
+    """Send the planned frames of ``reader`` through ``publish`` under ``cfg.mode``;
+    in lossless mode ``pace(k)`` is called before the k-th frame and returns when the
+    pipeline is ready for it (see :class:`Pacer`)."""
+    n = len(reader)
+    plan = replay_plan(n, cfg)
     stats = ReplayStats(planned=len(plan))
     period = 1.0 / cfg.rate_hz
     t0 = clock()
-    for k, i in enumerate(plan):
+    for k, (i, number) in enumerate(plan):
         if should_stop():
             break
         if cfg.mode == "live":
@@ -62,17 +76,105 @@ def replay(
             now = clock()
             if now > due + period:
                 stats.dropped += 1
-                stats.dropped_indices.append(i)
+                stats.dropped_indices.append(number)
                 continue
             if now < due:
                 sleep(due - now)
-        frame = reader.frame(i)
+        elif pace is not None:
+            pace(k)
+            if should_stop():
+                break
+        try:
+            frame = reader.frame(i)
+        except DatasetError as exc:
+            stats.rejected += 1
+            log.warning("frame %d refused: %s", i, exc)
+            continue
+        if number != i:
+            lap = number // n
+            frame = frame.model_copy(update={"frame_index": number, "time_s": frame.time_s + lap * (n / max(cfg.rate_hz, 1e-9))})
         publish(frame)
         stats.published += 1
-        stats.last_frame_index = i
+        stats.last_frame_index = number
         if on_progress is not None:
             on_progress(stats)
     stats.seconds = clock() - t0
     if stats.dropped:
         log.warning("live replay dropped %d of %d frames (subscriber lagging)", stats.dropped, stats.planned)
     return stats
+
+
+class Pacer:
+    """Lossless replay's end-to-end flow control, without Zenoh: frame k may go out once
+    every pacing stage that is alive has acknowledged frame k - ``window`` (or, before it
+    acknowledged anything, while k < ``window``). Stages that are not running do not count,
+    so a source replaying to a plain subscriber is not held up; a stage that was running and
+    vanished (a crash being restarted, a router restart) still counts for ``hold_gone_s``, so
+    the source waits for it instead of replaying into the void."""
+
+    def __init__(
+        self, plan: list[int], window: int, stages: list[str], hold_gone_s: float = 0.0, clock: Callable[[], float] = time.monotonic
+    ) -> None:
+        self.position = {int(f): k for k, f in enumerate(plan)}
+        self.window = window
+        self.stages = list(stages)
+        self.hold_gone_s = float(hold_gone_s)
+        self.clock = clock
+        self.done: dict[str, int] = {}
+        """Stage -> highest plan position it has acknowledged."""
+        self.last_seen: dict[str, float] = {}
+        """Stage -> when it was last seen alive."""
+        self.held_s = 0.0
+        """Total time spent waiting for vanished stages."""
+        self.rejoins: dict[str, int] = {}
+        """Stage -> times it came back after vanishing."""
+        self._gone: set[str] = set()
+        self._cv = threading.Condition()
+
+    def ack(self, stage: str, frame_index: int) -> None:
+        k = self.position.get(int(frame_index))
+        if k is None or stage not in self.stages:
+            return
+        with self._cv:
+            if k > self.done.get(stage, -1):
+                self.done[stage] = k
+                self._cv.notify_all()
+
+    def counted(self, alive: set[str], k: int) -> set[str]:
+        """The stages that hold frame ``k`` now: those alive, and those gone for less than
+        ``hold_gone_s``. A stage that comes back (restarted) never acknowledges what it lost
+        while away, so it starts afresh from ``k``: what it lost is its to count."""
+        now = self.clock()
+        for s in self.stages:
+            if s in alive:
+                if s in self._gone:
+                    self._gone.discard(s)
+                    self.rejoins[s] = self.rejoins.get(s, 0) + 1
+                    self.done[s] = max(self.done.get(s, -1), k - 1)
+                    log.info("%s is back; pacing on from frame position %d", s, k)
+                self.last_seen[s] = now
+            elif s in self.last_seen:
+                self._gone.add(s)
+        return {s for s in self.stages if s in alive or now - self.last_seen.get(s, -math.inf) < self.hold_gone_s}
+
+    def ready(self, k: int, alive: set[str]) -> bool:
+        with self._cv:
+            return all(self.done.get(s, -1) >= k - self.window for s in self.counted(alive, k))
+
+    def wait(self, k: int, alive: Callable[[], set[str]], should_stop: Callable[[], bool], poll_s: float = 0.1) -> None:
+        """Block until frame ``k`` may go, or ``should_stop``; ``alive`` is re-read while
+        waiting, so a stage that dies stops holding the source (after ``hold_gone_s``)."""
+        warned = False
+        with self._cv:
+            while not should_stop():
+                now_alive = alive()
+                counted = self.counted(now_alive, k)
+                if all(self.done.get(s, -1) >= k - self.window for s in counted):
+                    return
+                gone = sorted(counted - now_alive)
+                if gone:
+                    if not warned:
+                        log.warning("frame %d waits for %s to come back (up to %.0f s)", k, ", ".join(gone), self.hold_gone_s)
+                        warned = True
+                    self.held_s += poll_s
+                self._cv.wait(poll_s)

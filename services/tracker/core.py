@@ -83,8 +83,19 @@ from services.tracker.association import (
     sparse_mask_iou,
 )
 from services.tracker.features.base import DenseFeatures
-from services.tracker.footprints import Footprint, mask_footprint, merge_footprints, project_footprint, support
-from services.tracker.propagation import masks_to_soft, propagate_with_config, upsample_confidence, upsample_labels
+from services.tracker.footprints import (
+    Footprint,
+    mask_footprint,
+    merge_footprints,
+    project_footprint,
+    support,
+)
+from services.tracker.propagation import (
+    masks_to_soft,
+    propagate_with_config,
+    upsample_confidence,
+    upsample_labels,
+)
 from services.tracker.tracks import TrackBook
 from shared.config.tracker import TrackerConfig
 from shared.messages.frames import Frame, TrackedFrame, TrackObservation

@@ -50,6 +50,19 @@ class SourceConfig(StrictModel):
     ``rate_hz`` and drop, counting, frames a slow subscriber cannot take."""
     rate_hz: float = Field(30.0, gt=0)
     """Publishing rate in live mode (Replica is 30 Hz)."""
+    window_frames: int = Field(8, ge=1)
+    """Lossless mode: frames the source may be ahead of the slowest stage that acknowledges
+    them (``frames/ack``) among those alive; bounds every queue of the pipeline."""
+    ack_from: list[str] = Field(default_factory=lambda: ["tracker", "fusion"])
+    """Lossless mode: the stages whose acknowledgements pace the source, when they are
+    running (a stage that is not alive does not hold it up)."""
+    loops: int = Field(1, ge=1)
+    """Replay the planned frames this many times, frame indices and time stamps running on
+    (lap L's frame i is number L * N + i): soak and load tests of the live system."""
+    hold_gone_s: float = Field(60.0, ge=0)
+    """Lossless mode: a pacing stage that was running and vanished (a crash being restarted,
+    a router restart) still holds the source this long, so frames are not replayed into the
+    void; after it, the source goes on without that stage."""
     stride: int = Field(1, ge=1)
     """Use every Nth frame."""
     max_frames: int | None = Field(None, ge=1)

@@ -44,10 +44,12 @@ NOMINAL_HZ = 30.0
 _FRAME = re.compile(r"^frame(\d+)\.(jpg|jpeg|png)$", re.IGNORECASE)
 
 
-def read_traj(path: Path) -> list[Pose]:
-    """All poses of ``traj.txt``, validated; the error names the file and line."""
+def read_traj(path: Path) -> list[Pose | DatasetError]:
+    """All poses of ``traj.txt``. A line that is not 16 numbers makes the file unreadable (a
+    DatasetError naming file and line); a NaN or non-rigid pose is kept as its DatasetError,
+    so only that frame is refused when it is read."""
     require_file(path, "trajectory (traj.txt)")
-    poses = []
+    poses: list[Pose | DatasetError] = []
     for lineno, line in enumerate(path.read_text().splitlines(), start=1):
         if not line.strip():
             continue
@@ -55,7 +57,10 @@ def read_traj(path: Path) -> list[Pose]:
         values = parse_floats(line, where)
         if len(values) != 16:
             raise DatasetError(f"{where}: expected 16 numbers (a 4x4 pose), found {len(values)}")
-        poses.append(checked_pose(np.array(values).reshape(4, 4), where))
+        try:
+            poses.append(checked_pose(np.array(values).reshape(4, 4), where))
+        except DatasetError as exc:
+            poses.append(exc)
     return poses
 
 
@@ -105,10 +110,14 @@ class ReplicaReader(SequenceReader):
         return len(self._rgb)
 
     def pose(self, i: int) -> Pose:
-        return self._poses[self._numbers[check_index(i, len(self))]]
+        pose = self._poses[self._numbers[check_index(i, len(self))]]
+        if isinstance(pose, DatasetError):
+            raise DatasetError(str(pose))
+        return pose
 
     def frame(self, i: int) -> Frame:
         check_index(i, len(self))
+        pose = self.pose(i)
         K = self.intrinsics
         rgb = read_rgb(self._rgb[i])
         check_size(self._rgb[i], rgb, K.width, K.height, f"the intrinsics' size (from {self._intrinsics_from})")
@@ -126,6 +135,6 @@ class ReplicaReader(SequenceReader):
             depth=depth,
             depth_scale=self.depth_scale,
             intrinsics=K,
-            T_world_cam=self.pose(i),
+            T_world_cam=pose,
             instances=instances,
         )

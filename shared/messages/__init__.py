@@ -1,7 +1,7 @@
 """One pydantic model per wire message (DESIGN.md section 2)."""
 
 from shared.messages.base import REGISTRY, Envelope, Message, register
-from shared.messages.frames import EndOfSequence, Frame, TrackedFrame, TrackObservation
+from shared.messages.frames import EndOfSequence, Frame, FrameAck, TrackedFrame, TrackObservation
 from shared.messages.graph import (
     Edge,
     GraphDelta,
@@ -29,6 +29,7 @@ __all__ = [
     "EndOfSequence",
     "Envelope",
     "Frame",
+    "FrameAck",
     "GraphDelta",
     "GraphSnapshot",
     "KeyframeMasks",

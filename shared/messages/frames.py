@@ -66,7 +66,8 @@ class Frame(Message):
 
 @register
 class EndOfSequence(Message):
-    """Sent by the source after the last frame of a sequence."""
+    """Sent by the source after the last frame of a sequence (``frames/end``), and passed on
+    by the tracker once it has emitted everything for it (``tracks/end``)."""
 
     frames_published: int = Field(ge=0)
     """Frames put on the wire."""
@@ -74,6 +75,21 @@ class EndOfSequence(Message):
     """Frames dropped in live mode because a subscriber lagged."""
     last_frame_index: int = Field(ge=-1)
     """Index of the last frame published, -1 if none."""
+    track_features_published: int | None = Field(None, ge=0)
+    """On ``tracks/end``: how many ``tracks/features`` messages the tracker sent, so fusion
+    can tell it has them all (the last keyframe's CLIP features come after its last frame)."""
+
+
+@register
+class FrameAck(Message):
+    """``frames/ack``: a stage of the pipeline has finished with a frame. In lossless replay
+    the source keeps at most ``source.window_frames`` frames ahead of the slowest stage it
+    hears from, so no queue between them grows and no Zenoh thread ever has to wait."""
+
+    frame_index: int = Field(ge=0)
+    """The frame done with."""
+    service: str = Field(min_length=1, max_length=32)
+    """Who is done with it (``tracker``, ``fusion``)."""
 
 
 class TrackObservation(Message):

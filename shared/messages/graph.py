@@ -37,6 +37,9 @@ class SegmentNode(Message):
     """(T', D) CLIP gallery, one row per track with a CLIP feature (III-F)."""
     gallery_tracks: list[int]
     """Track id of each gallery row."""
+    gallery_weights: list[float] = Field(default_factory=list)
+    """Share of the segment's hypothesis weight held by each gallery row's track (0-1), so a
+    query can leave out views of tracks that barely make up the segment; empty if unknown."""
     active: bool
     """Active (in the window) or historical."""
     room: int | None = None
@@ -50,6 +53,10 @@ class SegmentNode(Message):
             raise ValueError(f"gallery has {self.gallery.shape[0]} rows for {len(self.gallery_tracks)} tracks")
         if not set(self.gallery_tracks) <= set(self.tracks):
             raise ValueError("gallery_tracks must be a subset of tracks")
+        if self.gallery_weights and len(self.gallery_weights) != len(self.gallery_tracks):
+            raise ValueError(f"gallery_weights has {len(self.gallery_weights)} entries for {len(self.gallery_tracks)} gallery rows")
+        if any(not (0.0 <= w <= 1.0) for w in self.gallery_weights):
+            raise ValueError("gallery_weights must lie in [0, 1]")
         if np.any(self.bbox_min > self.bbox_max):
             raise ValueError("bbox_min exceeds bbox_max")
         return self

@@ -75,3 +75,4 @@ def test_distributed_lossless_equals_in_process(small, tmp_path):
     want = MapStore(tmp_path / "in_process" / "graph").load().snapshot
     assert reference["segments"] == len(got.segments)
     assert [(s.id, s.tracks) for s in got.segments] == [(s.id, s.tracks) for s in want.segments]
+    assert [s.gallery_tracks for s in got.segments] == [s.gallery_tracks for s in want.segments]

@@ -16,7 +16,7 @@ from typing import Any
 import msgpack
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 from PIL import Image
@@ -36,6 +36,7 @@ from shared.messages import (
     EndOfSequence,
     Envelope,
     Frame,
+    FrameAck,
     GraphDelta,
     GraphSnapshot,
     KeyframeMasks,
@@ -55,7 +56,7 @@ from shared.messages import (
     TrackObservation,
 )
 
-FAST = settings(max_examples=25, deadline=None, derandomize=True)
+FAST = settings(max_examples=25, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 
 # ---------------------------------------------------------------- scalar strategies
 
@@ -156,6 +157,7 @@ def end_of_sequences(draw: st.DrawFn) -> EndOfSequence:
         frames_published=draw(NONNEG),
         frames_dropped=draw(NONNEG),
         last_frame_index=draw(FROM_MINUS_ONE),
+        track_features_published=draw(st.none() | NONNEG),
     )
 
 
@@ -249,6 +251,7 @@ def segment_nodes(draw: st.DrawFn) -> SegmentNode:
         dino=draw(vectors()),
         gallery=draw(feature_rows(len(gallery_tracks))),
         gallery_tracks=gallery_tracks,
+        gallery_weights=draw(st.just([]) | st.lists(st.floats(0, 1), min_size=len(gallery_tracks), max_size=len(gallery_tracks))),
         active=draw(st.booleans()),
         room=draw(st.none() | I64),
         num_vertices=draw(NONNEG),
@@ -323,7 +326,9 @@ def graph_snapshots(draw: st.DrawFn) -> GraphSnapshot:
 def text_or_image(draw: st.DrawFn) -> dict:
     if draw(st.booleans()):
         return {"text": draw(NONBLANK)}
-    return {"image": draw(rgb_images(draw(SIDE), draw(SIDE)))}
+    h, w = draw(SIDE), draw(SIDE)
+    instances = draw(st.none() | arrays("int32", (h, w), elements=st.integers(-1, 50)))
+    return {"image": draw(rgb_images(h, w)), "instances": instances}
 
 
 @st.composite
@@ -378,6 +383,7 @@ def query_replies(draw: st.DrawFn) -> QueryReply:
 STRATEGIES: dict[type[BaseModel], st.SearchStrategy] = {
     Frame: frames(),
     EndOfSequence: end_of_sequences(),
+    FrameAck: st.builds(FrameAck, frame_index=NONNEG, service=st.text(min_size=1, max_size=32)),
     TrackedFrame: tracked_frames(),
     KeyframeRequest: keyframe_requests(),
     KeyframeMasks: keyframe_masks(),
@@ -401,8 +407,10 @@ CONFIGS = {
     ),
 }
 
-JPEG_MAX_MEAN_ABS_ERROR = 70.0
-"""Loose bound over arbitrary noise images; the exact Pillow reference below is the tight check."""
+JPEG_MAX_MEAN_ABS_ERROR = 128.0
+"""Loose bound: channels swapped or inverted would exceed it. Hypothesis finds tiny 0/255
+checkerboards that JPEG at quality 50 legitimately smears past 70, so the exact Pillow
+reference below is the tight check."""
 
 # ---------------------------------------------------------------- comparison
 

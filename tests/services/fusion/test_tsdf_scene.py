@@ -172,6 +172,17 @@ def test_window_archives_and_restores_without_loss():
         np.testing.assert_array_equal(arr, after[name], err_msg=name)
 
 
+def test_archived_mesh_completes_the_window_mesh():
+    """A whole-map export: the archive's mesh plus the window's is the mesh before archiving."""
+    tsdf = fused(TSDFConfig(active_window_m=8.0))
+    whole = tsdf.extract_mesh()
+    assert len(tsdf.extract_archived_mesh()) == 0
+    tsdf.update_window(np.array([100.0, 0.0, 0.0]))  # everything leaves
+    assert len(tsdf.extract_mesh()) == 0
+    assert_same_mesh(whole, tsdf.extract_archived_mesh())
+    np.testing.assert_array_equal(whole.winners(), tsdf.extract_archived_mesh().winners())
+
+
 def test_window_partial_and_frustum_restore():
     tsdf = fused(TSDFConfig(active_window_m=2.0, restore_archived=True))
     total = tsdf.active_blocks

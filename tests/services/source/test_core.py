@@ -99,3 +99,107 @@ def test_stop_request_ends_replay():
     sent = []
     replay(reader, SourceConfig(), lambda f: sent.append(f.frame_index), should_stop=lambda: len(sent) >= 5)
     assert sent == [0, 1, 2, 3, 4]
+
+
+def test_pacer_keeps_the_source_a_window_ahead_of_the_slowest_live_stage():
+    from services.source.core import Pacer
+
+    p = Pacer(plan=[0, 2, 4, 6, 8, 10], window=2, stages=["tracker", "fusion"])
+    both = {"tracker", "fusion", "source"}
+    assert p.ready(0, both) and p.ready(1, both) and not p.ready(2, both)
+    p.ack("tracker", 2)  # position 1
+    assert not p.ready(3, both)  # fusion still has acknowledged nothing
+    p.ack("fusion", 0)
+    assert p.ready(2, both) and not p.ready(3, both)
+    p.ack("fusion", 2)
+    assert p.ready(3, both) and not p.ready(4, both)
+    # A stage that is not running does not hold the source, an unknown frame or stage is ignored.
+    assert p.ready(4, {"tracker"}) is False and p.ready(3, {"tracker"})
+    assert p.ready(5, set())
+    p.ack("tracker", 7)
+    p.ack("viewer", 10)
+    assert p.done == {"tracker": 1, "fusion": 1}
+
+
+def test_a_vanished_stage_holds_the_source_for_hold_gone_s():
+    from services.source.core import Pacer
+
+    now = [0.0]
+    p = Pacer(plan=list(range(10)), window=1, stages=["tracker", "fusion"], hold_gone_s=5.0, clock=lambda: now[0])
+    assert p.ready(0, set()) and p.ready(5, set())  # never seen: not waited for
+    p.ack("tracker", 3)
+    p.ack("fusion", 3)
+    assert p.ready(4, {"tracker", "fusion"}) and not p.ready(5, {"tracker", "fusion"})
+    p.ack("tracker", 4)
+    now[0] = 1.0
+    assert not p.ready(5, {"tracker"})  # fusion vanished at 0 s (a restart): it still counts
+    now[0] = 4.5
+    assert not p.ready(5, {"tracker"})  # gone 4.5 s of 5
+    now[0] = 5.5
+    assert p.ready(5, {"tracker"})  # gone too long: the source goes on without it
+    p.ack("tracker", 5)
+    now[0] = 7.0
+    # back (restarted): what it lost while away is never acknowledged, so it paces afresh
+    assert p.ready(6, {"tracker", "fusion"}) and p.rejoins == {"fusion": 1}
+    p.ack("tracker", 6)
+    assert not p.ready(7, {"tracker", "fusion"})  # and then holds like any stage
+    p.ack("fusion", 6)
+    assert p.ready(7, {"tracker", "fusion"})
+
+
+def test_pacer_wait_returns_on_ack_or_stop():
+    import threading
+    import time
+
+    from services.source.core import Pacer
+
+    p = Pacer(plan=list(range(10)), window=1, stages=["tracker"])
+    alive = lambda: {"tracker"}  # noqa: E731
+    threading.Timer(0.2, p.ack, args=("tracker", 3)).start()
+    t0 = time.monotonic()
+    p.wait(4, alive, lambda: False, poll_s=0.05)
+    assert 0.15 < time.monotonic() - t0 < 2
+    stop = threading.Event()
+    threading.Timer(0.2, stop.set).start()
+    p.wait(9, alive, stop.is_set, poll_s=0.05)
+    assert stop.is_set()
+
+
+def test_lossless_replay_calls_pace_before_each_frame():
+    from services.source.core import replay
+    from shared.config.source import SourceConfig
+
+    calls: list[int] = []
+
+    class Reader:
+        def __len__(self) -> int:
+            return 4
+
+        def frame(self, i: int):
+            return i
+
+    sent: list[int] = []
+    stats = replay(Reader(), SourceConfig(mode="lossless"), sent.append, pace=calls.append)
+    assert calls == [0, 1, 2, 3] and sent == [0, 1, 2, 3] and stats.published == 4
+
+
+def test_loops_replay_the_plan_with_running_frame_numbers():
+    from services.source.core import replay
+    from shared.config.source import SourceConfig
+
+    class Reader:
+        def __len__(self) -> int:
+            return 5
+
+        def frame(self, i: int):
+            from types import SimpleNamespace
+
+            f = SimpleNamespace(frame_index=i, time_s=i / 30.0)
+            f.model_copy = lambda update: SimpleNamespace(**{**vars(f), **update})
+            return f
+
+    sent = []
+    stats = replay(Reader(), SourceConfig(mode="lossless", loops=3, stride=2), sent.append)
+    assert [f.frame_index for f in sent] == [0, 2, 4, 5, 7, 9, 10, 12, 14]
+    assert stats.published == 9 and stats.last_frame_index == 14
+    assert sent[3].time_s == 5 / 30.0  # lap 1 starts one sequence length later

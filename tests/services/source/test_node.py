@@ -16,9 +16,9 @@ from PIL import Image
 
 from services.router import run_router
 from shared.config import TransportConfig
-from shared.messages import EndOfSequence, Frame
+from shared.messages import EndOfSequence, Frame, FrameAck
 from shared.topics import Topics
-from shared.transport import TypedSubscriber, open_session
+from shared.transport import TypedPublisher, TypedSubscriber, declare_alive, open_session
 
 pytestmark = pytest.mark.zenoh
 
@@ -65,25 +65,65 @@ def _source_cmd(seq: Path, endpoint: str, *extra: str) -> list[str]:
     return [sys.executable, "-m", "services.cli", "source", str(seq), "--connect", endpoint, "--json", *extra]
 
 
-def test_lossless_replay_delivers_every_frame(tmp_path, router):
+def test_lossless_replay_is_paced_by_the_stages_and_delivers_every_frame(tmp_path, router):
+    """A slow stage that acknowledges each frame (``frames/ack``), with a queue of only 4:
+    the source stays ``window_frames`` ahead of it, so nothing is dropped and no Zenoh
+    thread waits."""
     seq = write_sequence(tmp_path / "seq")
     topics = Topics("robot0")
     session = open_session(TransportConfig(connect=[router], shared_memory=False))
-    frames = TypedSubscriber(session, topics.frames, Frame, policy="fifo", capacity=4)
+    token = declare_alive(session, topics.alive("tracker"))
+    acks = TypedPublisher(session, topics.frame_ack, FrameAck, robot_id="robot0")
+    got: list[int] = []
+
+    def slow_stage(env) -> None:
+        time.sleep(0.1)
+        got.append(env.body.frame_index)
+        acks.put(FrameAck(frame_index=env.body.frame_index, service="tracker"))
+
+    frames = TypedSubscriber(session, topics.frames, Frame, policy="fifo", capacity=4, callback=slow_stage)
     ends = TypedSubscriber(session, topics.end_of_sequence, EndOfSequence)
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text("source:\n  window_frames: 2\n")
     try:
-        proc = subprocess.run(_source_cmd(seq, router, "--stride", "2"), capture_output=True, text=True, timeout=60, cwd=REPO)
+        t0 = time.monotonic()
+        proc = subprocess.run(_source_cmd(seq, router, "--config", str(cfg)), capture_output=True, text=True, timeout=60, cwd=REPO)
+        took = time.monotonic() - t0
         assert proc.returncode == 0, proc.stderr
-        assert json.loads(proc.stdout.strip().splitlines()[-1]) | {"seconds": 0} == {"published": 6, "dropped": 0, "seconds": 0}
-        got = []
-        while (env := frames.recv(timeout=2.0)) is not None:
-            got.append(env.body.frame_index)
-        assert got == [0, 2, 4, 6, 8, 10]
-        end = ends.recv(timeout=2.0)
-        assert end is not None and end.body.frames_published == 6 and end.body.last_frame_index == 10
+        assert json.loads(proc.stdout.strip().splitlines()[-1]) | {"seconds": 0} == {"published": 12, "dropped": 0, "seconds": 0}
+        end = ends.recv(timeout=5.0)
+        assert end is not None and end.body.frames_published == 12 and end.body.last_frame_index == 11
+        deadline = time.monotonic() + 5
+        while len(got) < 12 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert got == list(range(12))
+        assert frames.stats.dropped == 0
+        assert took > 0.9  # it waited for the stage (12 frames at 0.1 s, 2 ahead)
     finally:
         frames.close()
         ends.close()
+        acks.close()
+        token.undeclare()
+        session.close()
+
+
+def test_lossless_replay_to_a_plain_subscriber(tmp_path, router):
+    """No pacing stage is alive: the replay is not held up, and a subscriber that keeps
+    up gets every frame in order."""
+    seq = write_sequence(tmp_path / "seq")
+    topics = Topics("robot0")
+    session = open_session(TransportConfig(connect=[router], shared_memory=False))
+    got: list[int] = []
+    frames = TypedSubscriber(session, topics.frames, Frame, policy="fifo", capacity=64, callback=lambda env: got.append(env.body.frame_index))
+    try:
+        proc = subprocess.run(_source_cmd(seq, router, "--stride", "2"), capture_output=True, text=True, timeout=60, cwd=REPO)
+        assert proc.returncode == 0, proc.stderr
+        deadline = time.monotonic() + 5
+        while len(got) < 6 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert got == [0, 2, 4, 6, 8, 10]
+    finally:
+        frames.close()
         session.close()
 
 

@@ -1,0 +1,447 @@
+"""``trackgraph launch FILE``: every service of a launch file as its own OS process.
+
+The launcher starts the router first, then the services in file order (each waiting for the
+services it names in ``after`` to be alive), and watches them two ways: the process itself
+(an exit is a crash unless a finite service finished with status 0) and its liveliness token
+(``trackgraph/<robot>/alive/<service>``, which vanishes within the link lease when a process
+freezes or loses the router). A crashed or unresponsive service is restarted under its
+bounded policy, with exponential backoff; fusion is restarted with ``--resume`` so it goes on
+from its last snapshot. A service that exhausts its policy ends the launch with an error.
+On Ctrl-C, or when every finite service has finished, the others get SIGTERM in reverse
+start order (the router last), and SIGKILL after ``stop_timeout_s``.
+
+Each child runs ``python -m services.cli ...`` in a new process group with its output in
+``LOG_DIR/<service>.log``; the resolved system config they all read is ``LOG_DIR/config.yaml``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from shared.config.base import ConfigError, save_resolved, validate
+from shared.config.launch import LaunchConfig, RestartPolicy, ServiceSpec, load_launch
+from shared.config.root import TrackGraphConfig
+
+log = logging.getLogger(__name__)
+
+TICK_S = 0.2
+REPORT_GONE_S = 3.0
+"""A liveliness token gone this long makes a service show as unresponsive."""
+
+
+class LaunchError(RuntimeError):
+    """The launch could not start, or a service failed beyond its restart policy."""
+
+
+def _deep_merge(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+@dataclass
+class Plan:
+    """A launch file resolved against the file system: configs written, commands built."""
+
+    launch: LaunchConfig
+    source: Path
+    log_dir: Path
+    config_path: Path
+    system: TrackGraphConfig
+    sequence: Path | None
+    out: Path | None
+    commands: dict[str, list[str]] = field(default_factory=dict)
+
+
+def plan_launch(
+    path: Path, *, sequence: Path | None = None, out: Path | None = None, log_dir: Path | None = None, config: Path | None = None
+) -> Plan:
+    """Read ``path``, write the resolved system config, and build every command line;
+    ``config`` replaces the file's system config."""
+    from services.mapping import prepare_config
+    from shared.config import load_config
+
+    path = Path(path)
+    launch = load_launch(path)
+    here = path.parent
+
+    def rel(p: str) -> Path:
+        q = Path(p)
+        return q if q.is_absolute() else here / q
+
+    sequence = sequence or (Path(launch.sequence) if launch.sequence else None)
+    out = out or (Path(launch.out) if launch.out else None)
+    names = {s.name for s in launch.services}
+    if "source" in names and sequence is None:
+        raise ConfigError(f"{path}: the source needs a sequence: set 'sequence' or pass --sequence SEQ_DIR")
+    if sequence is not None and not Path(sequence).is_dir():
+        raise ConfigError(f"{sequence}: no such sequence folder")
+    if "fusion" in names and out is None:
+        raise ConfigError(f"{path}: fusion needs a map folder: set 'out' or pass --out MAP_DIR")
+    log_dir = Path(log_dir or (launch.log_dir and Path(launch.log_dir)) or (out / "logs" if out else Path("trackgraph-logs")))
+    log_dir.mkdir(parents=True, exist_ok=True)
+
+    for zc in [launch.zenoh_config] + [s.zenoh_config for s in launch.services]:
+        if zc is not None and not rel(zc).is_file():
+            raise ConfigError(f"{path}: zenoh config {rel(zc)} does not exist")
+    base = load_config(Path(config) if config is not None else rel(launch.config))
+    data = _deep_merge(base.model_dump(mode="json"), launch.overrides)
+    data["transport"] = {**data["transport"], "mode": "client", "connect": list(launch.connect), "listen": []}
+    if launch.zenoh_config is not None:
+        data["transport"]["zenoh_config_file"] = str(rel(launch.zenoh_config))
+    system = validate(TrackGraphConfig, data, f"{path}: overrides")
+    if sequence is not None:
+        system = prepare_config(system, Path(sequence))
+    config_path = save_resolved(system, log_dir / "config.yaml")
+    plan = Plan(launch, path, log_dir, config_path, system, Path(sequence) if sequence else None, Path(out) if out else None)
+
+    py = [sys.executable, "-m", "services.cli"]
+    for spec in launch.services:
+        cfg_file = config_path
+        if spec.zenoh_config is not None and spec.name != "router":
+            own = system.model_copy(update={"transport": system.transport.model_copy(update={"zenoh_config_file": str(rel(spec.zenoh_config))})})
+            cfg_file = save_resolved(own, log_dir / f"config-{spec.name}.yaml")
+        if spec.name == "router":
+            cmd = [*py, "router", *sum((["--listen", ep] for ep in launch.listen), [])]
+            if spec.zenoh_config is not None:
+                cmd += ["--zenoh-config", str(rel(spec.zenoh_config))]
+        elif spec.name == "source":
+            cmd = [*py, "source", str(sequence), "--config", str(cfg_file)]
+        else:
+            cmd = [*py, "serve", spec.name, "--config", str(cfg_file)]
+            if spec.name == "fusion":
+                cmd += ["--out", str(out)]
+            if spec.name == "viewer":
+                cmd += ["--out", str((out or log_dir) / "live.rrd")]
+        plan.commands[spec.name] = cmd + list(spec.args)
+    return plan
+
+
+@dataclass
+class Proc:
+    """One supervised service."""
+
+    spec: ServiceSpec
+    policy: RestartPolicy
+    cmd: list[str]
+    log_path: Path
+    state: str = "pending"
+    """pending, starting, alive, unresponsive, backoff, finished, failed, stopped."""
+    popen: subprocess.Popen | None = None
+    started_at: float = 0.0
+    gone_since: float | None = None
+    """When its liveliness token was last seen going away while running."""
+    restarts: list[float] = field(default_factory=list)
+    next_start: float = 0.0
+    exit_codes: list[int] = field(default_factory=list)
+    reason: str = ""
+    peak_rss_mb: float = 0.0
+    """Largest resident memory seen of any run of the process (Linux /proc)."""
+
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+    @property
+    def pid(self) -> int | None:
+        return self.popen.pid if self.popen is not None and self.popen.poll() is None else None
+
+
+class Supervisor:
+    """Starts, watches, restarts and stops the processes of one :class:`Plan`."""
+
+    def __init__(self, plan: Plan, *, status: bool = True) -> None:
+        self.plan = plan
+        self.launch = plan.launch
+        self.topics_root = f"trackgraph/{plan.system.robot_id}/alive"
+        self.procs = {
+            s.name: Proc(s, s.restart or self.launch.restart, plan.commands[s.name], plan.log_dir / f"{s.name}.log")
+            for s in self.launch.services
+        }
+        self.order = [s.name for s in self.launch.services]
+        self.stop_event = threading.Event()
+        self.session = None
+        self.watcher = None
+        self._connecting: threading.Thread | None = None
+        self._watching_since = 0.0
+        self._status = status
+        self._events: list[str] = []
+        self.error: str | None = None
+
+    # ------------------------------------------------------------------ helpers
+
+    def _alive(self, name: str) -> bool:
+        p = self.procs[name]
+        if name == "router":
+            return p.popen is not None and p.popen.poll() is None and _port_open(self.launch.listen)
+        return self.watcher is not None and f"{self.topics_root}/{name}" in self.watcher.alive()
+
+    def _event(self, msg: str) -> None:
+        log.info("%s", msg)
+        self._events = (self._events + [f"{time.strftime('%H:%M:%S')} {msg}"])[-6:]
+
+    def _spawn(self, p: Proc) -> None:
+        cmd = list(p.cmd)
+        if p.name == "fusion" and p.exit_codes and "--resume" not in cmd:
+            cmd.append("--resume")  # a crashed fusion goes on from its last snapshot
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        logf = open(p.log_path, "ab")  # noqa: SIM115 - the child owns it for its lifetime
+        try:
+            logf.write(f"\n==== {time.strftime('%Y-%m-%d %H:%M:%S')} start: {' '.join(cmd)}\n".encode())
+            logf.flush()
+            p.popen = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env, start_new_session=True)
+        finally:
+            logf.close()
+        p.state, p.started_at, p.gone_since = "starting", time.monotonic(), None
+        self._event(f"{p.name} started (pid {p.popen.pid})")
+
+    def _crashed(self, p: Proc, why: str) -> None:
+        now = time.monotonic()
+        if p.popen is not None and p.popen.poll() is None:
+            _kill(p.popen, signal.SIGKILL, 5.0)
+        recent = [t for t in p.restarts if now - t <= p.policy.window_s]
+        if len(recent) >= p.policy.max_restarts:
+            p.state, p.reason = "failed", why
+            self._event(f"{p.name} failed: {why}; {len(recent)} restarts in {p.policy.window_s:.0f} s, giving up")
+            self.error = f"{p.name} failed: {why} (log: {p.log_path})"
+            return
+        delay = min(p.policy.backoff_s * 2 ** len(recent), p.policy.backoff_max_s)
+        p.restarts = recent + [now]
+        p.state, p.next_start, p.reason = "backoff", now + delay, why
+        self._event(f"{p.name} {why}; restarting in {delay:.1f} s ({len(p.restarts)}/{p.policy.max_restarts})")
+
+    def _ready_to_start(self, p: Proc) -> bool:
+        if "router" in self.procs and p.name != "router" and not self._alive("router"):
+            return False
+        return all(self.procs[d].state in ("alive", "finished") for d in p.spec.after)
+
+    def _open_session(self) -> None:
+        """Join the network in the background: a robot's launch may come up before the base
+        station's router, and its services must start anyway (they wait for it themselves)."""
+        from shared.transport import LivelinessWatcher, open_session
+
+        def connect() -> None:
+            transport = self.plan.system.transport.model_copy(update={"connect_timeout_s": -1.0})
+            session = open_session(transport)
+            if self.stop_event.is_set():
+                session.close()
+                return
+            self.session = session
+            self._watching_since = time.monotonic()
+            self.watcher = LivelinessWatcher(session, f"{self.topics_root}/**")
+            self._event("watching liveliness on " + ", ".join(transport.connect))
+
+        self._connecting = threading.Thread(target=connect, name="launch:session", daemon=True)
+        self._connecting.start()
+
+    # ------------------------------------------------------------------ the loop
+
+    def step(self) -> None:
+        """One supervision tick."""
+        now = time.monotonic()
+        if self._connecting is None and ("router" not in self.procs or self._alive("router")):
+            self._open_session()
+        for name in self.order:
+            p = self.procs[name]
+            if p.state == "pending" and self._ready_to_start(p):
+                self._spawn(p)
+            elif p.state == "backoff" and now >= p.next_start and self._ready_to_start(p):
+                self._spawn(p)
+            if p.popen is None or p.state in ("finished", "failed", "stopped", "backoff"):
+                continue
+            code = p.popen.poll()
+            if code is not None:
+                p.exit_codes.append(code)
+                if code == 0 and p.spec.is_finite:
+                    p.state = "finished"
+                    self._event(f"{p.name} finished")
+                else:
+                    self._crashed(p, f"exited with status {code}" if code >= 0 else f"killed by {signal.Signals(-code).name}")
+                continue
+            p.peak_rss_mb = max(p.peak_rss_mb, _peak_rss_mb(p.popen.pid))
+            if self._alive(name):
+                if p.state != "alive":
+                    self._event(f"{p.name} alive" + (" again" if p.state == "unresponsive" else ""))
+                p.state, p.gone_since = "alive", None
+            elif self.watcher is None and name != "router":
+                continue  # not connected yet: liveliness cannot be told
+            elif p.state == "starting" and now - max(p.started_at, self._watching_since) > self.launch.alive_timeout_s:
+                self._crashed(p, f"not alive {self.launch.alive_timeout_s:.0f} s after start")
+            elif p.state in ("alive", "unresponsive") and name != "router":
+                p.gone_since = p.gone_since or now
+                # A token can blink while a link re-forms; only a lasting absence is news.
+                if p.state == "alive" and now - p.gone_since > min(REPORT_GONE_S, self.launch.unresponsive_s):
+                    p.state = "unresponsive"
+                    self._event(f"{p.name} unresponsive (liveliness token gone)")
+                if now - p.gone_since > self.launch.unresponsive_s:
+                    self._crashed(p, f"unresponsive for {now - p.gone_since:.0f} s")
+
+    def finished(self) -> bool:
+        finite = [p for p in self.procs.values() if p.spec.is_finite]
+        return bool(finite) and all(p.state == "finished" for p in finite)
+
+    def run(self) -> dict[str, Any]:
+        """Supervise until Ctrl-C, a failure, or (``exit_when_finished``) the job's end."""
+        live = _StatusView(self) if self._status else None
+        try:
+            while not self.stop_event.is_set():
+                self.step()
+                if live is not None:
+                    live.update()
+                if self.error is not None:
+                    break
+                if self.launch.exit_when_finished and self.finished():
+                    self._event("every finite service finished")
+                    break
+                self.stop_event.wait(TICK_S)
+        finally:
+            self.shutdown()
+            if live is not None:
+                live.close()
+        if self.error is not None:
+            raise LaunchError(self.error)
+        return self.summary()
+
+    def shutdown(self) -> None:
+        """SIGTERM in reverse start order (router last), SIGKILL after the grace."""
+        running = [self.procs[n] for n in reversed(self.order) if self.procs[n].pid is not None]
+        routers = [p for p in running if p.name == "router"]
+        for p in [p for p in running if p.name != "router"] + routers:
+            _kill(p.popen, signal.SIGTERM, self.launch.stop_timeout_s)
+            if p.state not in ("finished", "failed"):
+                p.state = "stopped"
+            self._event(f"{p.name} stopped")
+            if p.name == "router" and self.watcher is not None:
+                self._close_session()
+        self._close_session()
+
+    def _close_session(self) -> None:
+        if self.watcher is not None:
+            self.watcher.close()
+            self.watcher = None
+        if self.session is not None:
+            self.session.close()
+            self.session = None
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "services": {
+                p.name: {
+                    "state": p.state,
+                    "restarts": len(p.restarts),
+                    "exit_codes": p.exit_codes,
+                    "peak_rss_mb": round(p.peak_rss_mb, 1),
+                    "log": str(p.log_path),
+                }
+                for p in self.procs.values()
+            },
+            "log_dir": str(self.plan.log_dir),
+            "config": str(self.plan.config_path),
+            "out": None if self.plan.out is None else str(self.plan.out),
+        }
+
+
+class _StatusView:
+    """One status table, redrawn in place on a terminal, or state changes as log lines."""
+
+    def __init__(self, sup: Supervisor) -> None:
+        from rich.console import Console
+
+        self.sup = sup
+        self.console = Console(stderr=True)
+        self.live = None
+        if self.console.is_terminal:
+            from rich.live import Live
+
+            self.live = Live(self.table(), console=self.console, refresh_per_second=4, transient=False)
+            self.live.start()
+
+    def table(self):
+        from rich.table import Table
+
+        t = Table(title=f"trackgraph launch {self.sup.plan.source}", header_style="bold", caption="\n".join(self.sup._events))
+        for col in ("service", "state", "pid", "up", "restarts", "log"):
+            t.add_column(col)
+        colours = {"alive": "green", "finished": "cyan", "failed": "red", "unresponsive": "yellow", "backoff": "yellow"}
+        now = time.monotonic()
+        for name in self.sup.order:
+            p = self.sup.procs[name]
+            up = f"{now - p.started_at:.0f} s" if p.pid is not None else "-"
+            t.add_row(name, f"[{colours.get(p.state, 'white')}]{p.state}[/]", str(p.pid or "-"), up, str(len(p.restarts)), str(p.log_path))
+        return t
+
+    def update(self) -> None:
+        if self.live is not None:
+            self.live.update(self.table())
+
+    def close(self) -> None:
+        if self.live is not None:
+            self.live.update(self.table())
+            self.live.stop()
+
+
+def _peak_rss_mb(pid: int) -> float:
+    """The process's high-water resident memory (VmHWM), 0 where /proc cannot tell."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024
+    except (OSError, ValueError):
+        pass
+    return 0.0
+
+
+def _port_open(endpoints: list[str]) -> bool:
+    for ep in endpoints:
+        proto, _, rest = ep.partition("/")
+        if proto not in ("tcp", "tls"):
+            return True  # no cheap probe for other links: trust the process
+        host, _, port = rest.rpartition(":")
+        host = "127.0.0.1" if host in ("0.0.0.0", "", "[::]") else host.strip("[]")
+        try:
+            with socket.create_connection((host, int(port.split("#")[0])), timeout=0.2):
+                return True
+        except OSError:
+            continue
+    return False
+
+
+def _kill(popen: subprocess.Popen, sig: int, timeout: float) -> None:
+    """Signal the child's process group and wait; SIGKILL it if it outlives ``timeout``."""
+    if popen.poll() is not None:
+        return
+    try:
+        os.killpg(popen.pid, sig)
+    except ProcessLookupError:
+        return
+    try:
+        popen.wait(timeout)
+    except subprocess.TimeoutExpired:
+        log.warning("pid %d ignored %s for %.0f s: killing it", popen.pid, signal.Signals(sig).name, timeout)
+        try:
+            os.killpg(popen.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            return
+        popen.wait(10)
+
+
+def run_launch(path: Path, *, sequence: Path | None = None, out: Path | None = None, log_dir: Path | None = None, status: bool = True) -> dict[str, Any]:
+    """Plan and supervise a launch file until it ends; SIGINT/SIGTERM stop it cleanly."""
+    plan = plan_launch(path, sequence=sequence, out=out, log_dir=log_dir)
+    sup = Supervisor(plan, status=status)
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: sup.stop_event.set())
+    return sup.run()

@@ -1,0 +1,86 @@
+"""A Python client of the query service, for scripts and for ``trackgraph query --live``.
+
+    with QueryClient(TransportConfig(connect=["tcp/base:7447"])) as client:
+        for hit in client.query("red armchair", top_k=3):
+            print(hit.segment, hit.score, hit.centroid)
+
+Any number of clients may query one service at once; each call is one Zenoh request.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import numpy as np
+
+from shared.config.transport import TransportConfig
+from shared.messages.rpc import QueryHit, QueryReply, QueryRequest
+from shared.topics import Topics
+from shared.transport import TransportError, open_session, request
+
+
+class QueryRefused(TransportError):
+    """The service answered, but refused the query (the message says why)."""
+
+
+class QueryClient:
+    """Queries ``trackgraph/<robot_id>/query``; pass a session to share one."""
+
+    def __init__(
+        self,
+        transport: TransportConfig | None = None,
+        *,
+        robot_id: str = "robot0",
+        session=None,
+        timeout_s: float | None = None,
+    ) -> None:
+        self.transport = transport or TransportConfig()
+        self.topics = Topics(robot_id)
+        self.robot_id = robot_id
+        self.timeout_s = timeout_s if timeout_s is not None else max(self.transport.query_timeout_s, 5.0)
+        self._own_session = session is None
+        self.session = session or open_session(self.transport)
+        self._seq = 0
+        self.last_graph_seq = -1
+
+    def query(
+        self,
+        text: str | None = None,
+        *,
+        image: Annotated[np.ndarray, "(H, W, 3) uint8"] | None = None,
+        instances: Annotated[np.ndarray, "(H, W) int32, synthetic scenes only"] | None = None,
+        top_k: int | None = None,
+        room: int | None = None,
+        center: Annotated[np.ndarray, "(3,) float world metres"] | None = None,
+        radius: float | None = None,
+        gallery: Literal["max", "mean"] | None = None,
+    ) -> list[QueryHit]:
+        """Ranked segments for a text or an image; raises QueryRefused or TransportError."""
+        req = QueryRequest(
+            text=text, image=image, instances=instances, top_k=top_k, room=room, radius=radius, gallery=gallery,
+            center=None if center is None else np.asarray(center, np.float64),
+        )  # fmt: skip
+        reply = self.ask(req)
+        if reply.error is not None:
+            raise QueryRefused(f"query refused: {reply.error}")
+        return reply.hits
+
+    def ask(self, req: QueryRequest) -> QueryReply:
+        """The raw reply to one request, error replies included."""
+        self._seq += 1
+        reply = request(
+            self.session, self.topics.query, req, QueryReply,
+            robot_id=self.robot_id, timeout=self.timeout_s, codec=self.transport.codec, seq=self._seq,
+        ).body  # fmt: skip
+        self.last_graph_seq = reply.graph_seq
+        return reply
+
+    def close(self) -> None:
+        if self._own_session:
+            self.session.close()
+
+    def __enter__(self) -> QueryClient:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

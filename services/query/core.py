@@ -1,0 +1,202 @@
+"""The query core (paper III-F, eq. 10): ranked segments for an embedded text or image query.
+
+No Zenoh here. A :class:`QueryIndex` is an immutable view of one graph version: every CLIP
+gallery row of every segment stacked into one unit-normalised matrix, so a query is one
+matrix-vector product followed by a per-segment maximum (eq. 10) or, for the gallery
+ablation, a product with the segments' normalised mean features. The node builds a new
+index after each applied delta and swaps it in whole, so a query never sees a half-applied
+graph; answering needs no lock.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from typing import Annotated, Literal
+
+import numpy as np
+
+from shared.config.query import QueryConfig
+from shared.messages.graph import SegmentNode
+from shared.messages.rpc import EmbedRequest, QueryHit, QueryReply, QueryRequest
+
+log = logging.getLogger(__name__)
+
+Embed = Callable[[EmbedRequest], Annotated[np.ndarray, "(D,) float32"]]
+"""Embeds a query's text or image; raises :class:`QueryError` with the reason if it cannot."""
+
+
+class QueryError(ValueError):
+    """A query that cannot be answered, for a reason the client can act on."""
+
+
+def _unit_rows(x: np.ndarray) -> np.ndarray:
+    x = np.asarray(x, np.float32)
+    return x / np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), 1e-12)
+
+
+@dataclass(frozen=True)
+class QueryIndex:
+    """The segments of one graph version, arranged for scoring."""
+
+    graph_seq: int
+    segments: tuple[SegmentNode, ...]
+    """Segments with at least one gallery row, in id order."""
+    gallery: Annotated[np.ndarray, "(R, D) float32 unit rows"]
+    row_start: Annotated[np.ndarray, "(S + 1,) int64: segment s owns rows row_start[s]:row_start[s+1]"]
+    mean: Annotated[np.ndarray, "(S, D) float32 unit mean gallery feature per segment"]
+    centroids: Annotated[np.ndarray, "(S, 3) float64"]
+    rooms: Annotated[np.ndarray, "(S,) int64 room id, -1 for none"]
+    room_ids: frozenset[int]
+    """Every room of the graph (a filter on a room without segments is valid, just empty)."""
+
+    @staticmethod
+    def build(graph_seq: int, segments: Iterable[SegmentNode], room_ids: Iterable[int] = (), *, min_view_share: float = 0.0) -> QueryIndex:
+        """``min_view_share`` leaves out gallery rows whose track holds less of the segment
+        (``QueryConfig.min_view_share``); a segment always keeps its best-supported row."""
+        segs = tuple(sorted((_views(s, min_view_share) for s in segments if len(s.gallery_tracks)), key=lambda s: s.id))
+        dim = segs[0].gallery.shape[1] if segs else 0
+        for s in segs:
+            if s.gallery.shape[1] != dim:
+                raise QueryError(f"segment {s.id} has {s.gallery.shape[1]}-d gallery rows, others {dim}-d")
+        rows = _unit_rows(np.concatenate([s.gallery for s in segs])) if segs else np.zeros((0, 0), np.float32)
+        counts = np.array([len(s.gallery_tracks) for s in segs], np.int64)
+        row_start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        mean = _unit_rows(np.add.reduceat(rows, row_start[:-1], axis=0)) if segs else np.zeros((0, 0), np.float32)
+        return QueryIndex(
+            graph_seq=graph_seq,
+            segments=segs,
+            gallery=rows,
+            row_start=row_start,
+            mean=mean,
+            centroids=np.array([s.centroid for s in segs], np.float64).reshape(-1, 3),
+            rooms=np.array([-1 if s.room is None else s.room for s in segs], np.int64),
+            room_ids=frozenset(int(r) for r in room_ids) | {int(s.room) for s in segs if s.room is not None},
+        )
+
+    @staticmethod
+    def empty() -> QueryIndex:
+        return QueryIndex.build(0, [])
+
+    @property
+    def dim(self) -> int:
+        return int(self.gallery.shape[1]) if self.gallery.size else 0
+
+    def __len__(self) -> int:
+        return len(self.segments)
+
+    def score(
+        self, query: Annotated[np.ndarray, "(D,) float32"], gallery: Literal["max", "mean"] = "max"
+    ) -> tuple[Annotated[np.ndarray, "(S,) float32"], Annotated[np.ndarray, "(S,) int64 best gallery row of each segment"]]:
+        """Eq. 10: each segment's maximum cosine over its gallery (or the cosine with its mean
+        feature), and the row that gave it."""
+        if not len(self):
+            return np.zeros(0, np.float32), np.zeros(0, np.int64)
+        q = _unit_rows(query)
+        cos = self.gallery @ q  # (R,)
+        starts = self.row_start[:-1]
+        best = np.maximum.reduceat(cos, starts)
+        # The row holding each segment's maximum, the first one on ties.
+        seg_of_row = np.repeat(np.arange(len(self)), np.diff(self.row_start))
+        at_max = np.where(cos == best[seg_of_row], np.arange(len(cos)), len(cos))
+        first = np.minimum.reduceat(at_max, starts).astype(np.int64)
+        if gallery == "mean":
+            return (self.mean @ q).astype(np.float32), first
+        return best.astype(np.float32), first
+
+
+def _views(s: SegmentNode, min_share: float) -> SegmentNode:
+    w = s.gallery_weights
+    if min_share <= 0 or not w or min(w) >= min_share:
+        return s
+    keep = [i for i, x in enumerate(w) if x >= min_share] or [int(np.argmax(w))]
+    return s.model_copy(update={
+        "gallery": s.gallery[keep], "gallery_tracks": [s.gallery_tracks[i] for i in keep], "gallery_weights": [w[i] for i in keep],
+    })  # fmt: skip
+
+
+class QueryEngine:
+    """Validates, embeds and answers queries against a :class:`QueryIndex`."""
+
+    def __init__(self, cfg: QueryConfig, embed: Embed) -> None:
+        self.cfg = cfg
+        self.embed = embed
+
+    def check(self, req: QueryRequest) -> None:
+        """Raise QueryError for a request the service refuses (the message schema already
+        rejects an empty query and a center without a radius)."""
+        cfg = self.cfg
+        if req.text is not None and len(req.text) > cfg.max_text_chars:
+            raise QueryError(f"text query has {len(req.text)} characters; at most {cfg.max_text_chars} allowed")
+        if req.image is not None:
+            h, w = req.image.shape[:2]
+            if h * w > cfg.max_image_pixels:
+                raise QueryError(f"image query has {w}x{h} = {h * w} pixels; at most {cfg.max_image_pixels} allowed")
+        if req.top_k is not None and req.top_k > cfg.max_top_k:
+            raise QueryError(f"top_k {req.top_k} exceeds the service's maximum of {cfg.max_top_k}")
+
+    def answer(self, index: QueryIndex, req: QueryRequest) -> QueryReply:
+        """The ranked segments, or a reply carrying the reason it was refused."""
+        try:
+            self.check(req)
+            hits = self.rank(index, req, self.embed(EmbedRequest(text=req.text, image=req.image, instances=req.instances)))
+        except QueryError as exc:
+            return QueryReply(graph_seq=index.graph_seq, error=str(exc))
+        return QueryReply(graph_seq=index.graph_seq, hits=hits)
+
+    def rank(
+        self, index: QueryIndex, req: QueryRequest, embedding: Annotated[np.ndarray, "(D,) float32"]
+    ) -> list[QueryHit]:
+        if req.room is not None and req.room not in index.room_ids:
+            known = ", ".join(str(r) for r in sorted(index.room_ids)) or "none yet"
+            raise QueryError(f"unknown room {req.room}; rooms in the graph: {known}")
+        if not len(index):
+            return []
+        emb = np.asarray(embedding, np.float32).reshape(-1)
+        if emb.shape[0] != index.dim or not np.isfinite(emb).all():
+            raise QueryError(
+                f"the query embedding is {emb.shape[0]}-d but the map's galleries are {index.dim}-d: "
+                "the query encoder differs from the one that built the map"
+            )
+        scores, rows = index.score(emb, req.gallery or self.cfg.gallery)
+        keep = np.ones(len(index), bool)
+        if req.room is not None:
+            keep &= index.rooms == req.room
+        if req.center is not None:
+            keep &= np.linalg.norm(index.centroids - np.asarray(req.center, np.float64), axis=1) <= req.radius
+        cand = np.flatnonzero(keep)
+        k = min(req.top_k or self.cfg.default_top_k, self.cfg.max_top_k, len(cand))
+        # Highest score first; equal scores by segment id, so answers are deterministic.
+        order = cand[np.lexsort((cand, -scores[cand]))][:k]
+        hits = []
+        for i in order.tolist():
+            s = index.segments[i]
+            row = int(rows[i]) - int(index.row_start[i])
+            hits.append(
+                QueryHit(
+                    segment=s.id,
+                    score=float(scores[i]),
+                    centroid=s.centroid,
+                    bbox_min=s.bbox_min,
+                    bbox_max=s.bbox_max,
+                    room=s.room,
+                    best_track=s.gallery_tracks[row] if 0 <= row < len(s.gallery_tracks) else None,
+                )
+            )
+        return hits
+
+
+def hit_rows(hits: list[QueryHit]) -> list[dict]:
+    """Hits as the command line's ``--json`` rows (DESIGN.md section 8)."""
+    return [
+        {
+            "segment": h.segment,
+            "score": round(h.score, 6),
+            "centroid": [round(float(v), 4) for v in h.centroid],
+            "bbox": [[round(float(v), 4) for v in h.bbox_min], [round(float(v), 4) for v in h.bbox_max]],
+            "room": h.room,
+            "best_track": h.best_track,
+        }
+        for h in hits
+    ]

@@ -1,0 +1,61 @@
+"""``trackgraph query MAP_DIR "TEXT"``: the query core on a saved map, no Zenoh.
+
+The map's newest snapshot gives the segments; queries are embedded with the encoder of the
+map's own resolved config (``MAP_DIR/config.yaml``, written by ``trackgraph map`` and the
+fusion service), or of ``--config``, so the query lands in the space the galleries are in.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from services.query.core import QueryEngine, QueryError, QueryIndex
+from shared.config.root import TrackGraphConfig
+from shared.messages.rpc import EmbedRequest, QueryReply, QueryRequest
+
+
+def load_index(map_dir: Path, min_view_share: float = 0.0) -> QueryIndex:
+    """The query index of the newest good snapshot in ``MAP_DIR/graph``."""
+    from services.fusion.store import MapStore, StoreError
+
+    store = MapStore(Path(map_dir) / "graph")
+    if store.latest_name() is None:
+        raise QueryError(f"{map_dir}: no map snapshot in {Path(map_dir) / 'graph'} (is this a trackgraph map folder?)")
+    try:
+        snap = store.load().snapshot
+    except StoreError as exc:
+        raise QueryError(f"{map_dir}: {exc}") from None
+    return QueryIndex.build(snap.graph_seq, snap.segments, (r.id for r in snap.rooms), min_view_share=min_view_share)
+
+
+def map_config(map_dir: Path, override: Path | None = None) -> TrackGraphConfig:
+    from shared.config import load_config
+
+    path = override or Path(map_dir) / "config.yaml"
+    if not path.is_file():
+        raise QueryError(f"{path}: no config to build the query encoder from; pass --config FILE")
+    return load_config(path)
+
+
+class OfflineQueries:
+    """A saved map and a local encoder; answers any number of queries."""
+
+    def __init__(self, map_dir: Path, cfg: TrackGraphConfig | None = None) -> None:
+        from services.keyframe_vl.embedder import Embedder
+        from services.keyframe_vl.encoders import make_vl_encoder
+
+        self.cfg = cfg or map_config(map_dir)
+        self.index = load_index(map_dir, self.cfg.query.min_view_share)
+        self.embedder = Embedder(make_vl_encoder(self.cfg.keyframe_vl.vl), self.cfg.keyframe_vl.embed_cache_size)
+        self.engine = QueryEngine(self.cfg.query, self._embed)
+
+    def _embed(self, req: EmbedRequest) -> np.ndarray:
+        reply = self.embedder.embed(req)
+        if reply.error is not None or reply.embedding is None:
+            raise QueryError(f"cannot embed the query: {reply.error or 'no embedding returned'}")
+        return reply.embedding
+
+    def ask(self, req: QueryRequest) -> QueryReply:
+        return self.engine.answer(self.index, req)

@@ -1,0 +1,1 @@
+"""Map viewer: Rerun recordings of the scene graph, PNG renders, and the live viewer node."""

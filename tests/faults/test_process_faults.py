@@ -1,0 +1,227 @@
+"""Faults injected into the whole system running as OS processes (``trackgraph launch``'s
+Supervisor) on the ``small`` preset over loopback Zenoh: kill -9 keyframe_vl and bring it back
+50 frames later; kill -9 fusion and let it resume; restart the router; SIGSTOP a service past
+the liveliness lease. (A SIGKILLed query service and a client killed mid-query are in
+tests/services/test_launch.py.)"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from services.launch import Supervisor, plan_launch
+from shared.messages.frames import FrameAck
+from shared.messages.keyframes import KeyframeMasks
+from shared.topics import Topics
+from shared.transport import TypedSubscriber, open_session
+
+pytestmark = [pytest.mark.faults, pytest.mark.zenoh, pytest.mark.slow, pytest.mark.timeout(900)]
+
+ROOT = Path(__file__).resolve().parents[2]
+SYNTHETIC = ROOT / "deploy" / "configs" / "synthetic.yaml"
+FRAMES = 120
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    from shared.synth import run_synth
+
+    out = tmp_path_factory.mktemp("synth") / "small"
+    run_synth("small", 0, out)
+    return out
+
+
+def write_launch(tmp: Path, port: int, services: list[dict], overrides: dict | None = None, **extra) -> Path:
+    base = {
+        "tracker": {"wait_for_masks": True, "device": "cpu", "keyframe_timeout_s": 2.0},
+        "transport": {"shared_memory": False},
+        "source": {"max_frames": FRAMES},
+    }
+    for k, v in (overrides or {}).items():
+        base[k] = {**base.get(k, {}), **v}
+    doc = {
+        "config": str(SYNTHETIC),
+        "overrides": base,
+        "connect": [f"tcp/127.0.0.1:{port}"],
+        "listen": [f"tcp/127.0.0.1:{port}"],
+        "services": services,
+        "restart": {"backoff_s": 0.2},
+        **extra,
+    }
+    path = tmp / "launch.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+class Run:
+    """A Supervisor on its own thread, and a session that watches acknowledgements."""
+
+    def __init__(self, path: Path, sequence: Path | None, out: Path | None) -> None:
+        self.plan = plan_launch(path, sequence=sequence, out=out)
+        self.sup = Supervisor(self.plan, status=False)
+        self.thread = threading.Thread(target=self.sup.run, daemon=True)
+        self.acked: dict[str, int] = {}
+        self.masks: list[tuple[float, int]] = []
+        self.session = None
+        self.subs: list = []
+
+    def start(self, watch: bool = True) -> Run:
+        self.thread.start()
+        if watch:
+            self.wait(lambda: self.sup.procs["router"].state == "alive", "router up", 60)
+            t = self.plan.system.transport.model_copy(update={"connect_timeout_s": -1.0})
+            self.session = open_session(t)
+            topics = Topics(self.plan.system.robot_id)
+            self.subs = [
+                TypedSubscriber(self.session, topics.frame_ack, FrameAck, capacity=1024, callback=self._on_ack),
+                TypedSubscriber(self.session, topics.keyframe_masks, KeyframeMasks, capacity=64,
+                                callback=lambda env: self.masks.append((time.monotonic(), env.body.frame_index))),
+            ]  # fmt: skip
+        return self
+
+    def _on_ack(self, env) -> None:
+        s, k = env.body.service, env.body.frame_index
+        self.acked[s] = max(self.acked.get(s, -1), k)
+
+    def wait(self, cond, what: str, timeout: float = 600) -> None:
+        deadline = time.monotonic() + timeout
+        while not cond():
+            assert self.sup.error is None, self.sup.error
+            assert self.thread.is_alive() or cond(), f"{what}: the launch ended: {self.sup.summary()}"
+            assert time.monotonic() < deadline, f"{what}: {self.sup.summary()}"
+            time.sleep(0.1)
+
+    def close(self) -> None:
+        for s in self.subs:
+            s.close()
+        if self.session is not None:
+            self.session.close()
+        self.sup.stop_event.set()
+        self.thread.join(timeout=120)
+        assert not self.thread.is_alive()
+        assert all(p.pid is None for p in self.sup.procs.values())
+
+
+def pipeline(*, keyframe_vl: bool = True) -> list[dict]:
+    services = [{"name": "router"}, {"name": "fusion", "args": ["--exit-at-end"]}, {"name": "tracker"}]
+    if keyframe_vl:
+        services.insert(1, {"name": "keyframe_vl"})
+        services[-1]["after"] = ["keyframe_vl"]
+    return services + [{"name": "source", "after": ["tracker", "fusion"]}]
+
+
+def test_keyframe_vl_killed_and_back_50_frames_later(small, tmp_path, free_port):
+    """The tracker loses no frame while keyframe_vl is gone, and takes masks again after."""
+    out = tmp_path / "map"
+    path = write_launch(tmp_path, free_port, pipeline(keyframe_vl=False))
+    run = Run(path, small, out)
+    cmd = [sys.executable, "-m", "services.cli", "serve", "keyframe_vl", "--config", str(run.plan.config_path)]
+    logf = open(tmp_path / "keyframe_vl.log", "ab")  # noqa: SIM115
+    vl = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        run.start()
+        run.wait(lambda: run.acked.get("tracker", -1) >= 20 and run.masks, "20 frames tracked with masks", 300)
+        vl.send_signal(signal.SIGKILL)
+        vl.wait()
+        killed_at = run.acked["tracker"]
+        run.wait(lambda: run.acked.get("tracker", -1) >= killed_at + 50, "50 frames without keyframe_vl", 300)
+        back_at, t_back = run.acked["tracker"], time.monotonic()
+        vl = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, start_new_session=True)
+        run.wait(lambda: (out / "run.json").exists(), "the map finished", 600)
+        summary = json.loads((out / "run.json").read_text())
+    finally:
+        vl.kill()
+        vl.wait()
+        logf.close()
+        run.close()
+    assert back_at + 10 < FRAMES - 1, "the outage must end before the sequence does"
+    assert summary["frames_in_map"] == summary["frames_announced"] == FRAMES and summary["frames_lost"] == 0
+    tracker_log = (run.plan.log_dir / "tracker.log").read_text()
+    assert "no masks after" in tracker_log  # the outage was noticed and propagated through
+    after = [k for t, k in run.masks if t > t_back]
+    assert after, "no keyframe masks after keyframe_vl came back"
+    assert summary["segments"] > 10
+
+
+def test_fusion_killed_resumes_and_counts_what_it_lost(small, tmp_path, free_port):
+    """kill -9 fusion mid-run: the Supervisor restarts it with --resume, the source waits for
+    it, and the map holds every frame but those after the last snapshot, which are counted."""
+    from services.fusion.store import MapStore
+
+    out = tmp_path / "map"
+    interval_s = 2.0
+    path = write_launch(tmp_path, free_port, pipeline(), overrides={"fusion": {"snapshot_interval_s": interval_s}})
+    run = Run(path, small, out).start()
+    try:
+        fusion = run.sup.procs["fusion"]
+        run.wait(lambda: MapStore(out / "graph").latest_name() is not None and run.acked.get("fusion", -1) >= 40, "a snapshot and 40 frames", 300)
+        old = fusion.pid
+        os.kill(old, signal.SIGKILL)
+        run.wait(lambda: fusion.state == "alive" and fusion.pid not in (None, old), "fusion restarted", 120)
+        run.wait(lambda: (out / "run.json").exists(), "the map finished", 600)
+        summary = json.loads((out / "run.json").read_text())
+    finally:
+        run.close()
+    assert len(fusion.restarts) == 1 and summary["resumed_from"]
+    lost = summary["frames_lost"]
+    assert summary["frames_announced"] == FRAMES and summary["frames_in_map"] == FRAMES - lost
+    # what was lost is at most what one snapshot interval and the pacing window hold
+    window = run.plan.system.source.window_frames
+    rate = FRAMES / max(summary["seconds"], 1.0)
+    assert 0 <= lost <= rate * interval_s * 3 + 2 * window, summary
+    assert summary["segments"] > 10
+
+
+def test_router_restart_every_service_reconnects(small, tmp_path, free_port):
+    """kill -9 the router mid-run: the Supervisor restarts it, every service reconnects by
+    itself, and the run completes; frames lost in flight are counted."""
+    out = tmp_path / "map"
+    path = write_launch(tmp_path, free_port, pipeline())
+    run = Run(path, small, out).start()
+    try:
+        router = run.sup.procs["router"]
+        run.wait(lambda: run.acked.get("fusion", -1) >= 30, "30 frames fused", 300)
+        old = router.pid
+        os.kill(old, signal.SIGKILL)
+        run.wait(lambda: router.state == "alive" and router.pid not in (None, old), "router restarted", 60)
+        run.wait(lambda: (out / "run.json").exists(), "the map finished", 600)
+        summary = json.loads((out / "run.json").read_text())
+        procs = {n: (p.state, len(p.restarts)) for n, p in run.sup.procs.items()}
+    finally:
+        run.close()
+    assert procs["router"][1] == 1
+    assert all(n == "router" or r == 0 for n, (_, r) in procs.items()), procs  # nobody else restarted
+    assert summary["frames_announced"] == FRAMES
+    assert summary["frames_lost"] <= 2 * run.plan.system.source.window_frames, summary
+    assert summary["segments"] > 10
+
+
+def test_a_frozen_service_is_reported_and_restarted(tmp_path, free_port):
+    """SIGSTOP the query service past the link lease: the Supervisor reports it unresponsive,
+    then restarts it under its policy."""
+    path = write_launch(tmp_path, free_port, [{"name": "router"}, {"name": "query"}], unresponsive_s=4.0, exit_when_finished=False)
+    run = Run(path, None, None).start(watch=False)
+    try:
+        query = run.sup.procs["query"]
+        run.wait(lambda: query.state == "alive", "query up", 120)
+        old = query.pid
+        os.kill(old, signal.SIGSTOP)
+        t0 = time.monotonic()
+        seen = set()
+        run.wait(lambda: seen.add(query.state) or (query.state == "alive" and query.pid not in (None, old)), "query restarted", 120)
+        took = time.monotonic() - t0
+        events = list(run.sup._events)
+    finally:
+        run.close()
+    assert "unresponsive" in seen and len(query.restarts) == 1, (seen, events)
+    assert any("unresponsive" in e for e in events)
+    assert took < 60

@@ -1,0 +1,181 @@
+"""The query service over loopback Zenoh: late join and gaps resynchronise from
+``graph/snapshot``, queries are embedded through ``vl/embed``, many clients at once, and a
+client that vanishes mid-query harms nobody. Fusion and keyframe_vl are stand-ins that speak
+the real messages."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+
+from services.fusion.graph import GraphReplica
+from services.query.client import QueryClient, QueryRefused
+from services.query.node import QueryNode
+from services.router import run_router
+from shared.codec import encode
+from shared.config import TrackGraphConfig
+from shared.messages.graph import GraphDelta, GraphSnapshot, SegmentNode, SnapshotRequest
+from shared.messages.rpc import EmbedReply, EmbedRequest, QueryRequest
+from shared.topics import Topics
+from shared.transport import TypedPublisher, TypedQueryable, open_session
+
+pytestmark = pytest.mark.zenoh
+
+WORDS = ["chair", "table", "lamp", "plant"]
+E = np.eye(8, dtype=np.float32)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def seg(i: int, word: str) -> SegmentNode:
+    c = np.array([float(i), 0.0, 0.0])
+    return SegmentNode(id=i, centroid=c, bbox_min=c - 0.2, bbox_max=c + 0.2, tracks=[i], dino=E[0],
+                       gallery=E[WORDS.index(word)][None], gallery_tracks=[i], active=True)  # fmt: skip
+
+
+class FakeFusion:
+    """Publishes deltas and serves snapshots of the graph it holds, like the fusion node."""
+
+    def __init__(self, session, topics: Topics, robot: str) -> None:
+        self.graph = GraphReplica()
+        self.pub = TypedPublisher(session, topics.graph_delta, GraphDelta, robot_id=robot)
+        self.snapshots = 0
+        self.q = TypedQueryable(session, topics.graph_snapshot, SnapshotRequest, GraphSnapshot, self._snap, robot_id=robot)
+
+    def _snap(self, env) -> GraphSnapshot:
+        self.snapshots += 1
+        return self.graph.snapshot()
+
+    def add(self, segment: SegmentNode, publish: bool = True) -> None:
+        d = GraphDelta(graph_seq=self.graph.graph_seq + 1, frame_index=self.graph.graph_seq, segments=[segment])
+        self.graph.apply_delta(d)
+        if publish:
+            self.pub.put(d)
+
+    def close(self) -> None:
+        self.q.close()
+        self.pub.close()
+
+
+@pytest.fixture
+def system():
+    """A router, a fake fusion and a fake keyframe_vl (vl/embed); yields (cfg, fusion)."""
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    cfg = TrackGraphConfig.model_validate({
+        "transport": {"mode": "client", "connect": [endpoint], "shared_memory": False, "query_timeout_s": 2.0},
+        "query": {"sync_wait_s": 0.5, "workers": 4},
+    })  # fmt: skip
+    stop = threading.Event()
+    router = threading.Thread(target=run_router, args=(cfg.transport.model_copy(update={"mode": "router", "connect": [], "listen": [endpoint]}), stop), daemon=True)
+    router.start()
+    time.sleep(0.3)
+    session = open_session(cfg.transport)
+    topics = Topics(cfg.robot_id)
+
+    def embed(env) -> EmbedReply:
+        req: EmbedRequest = env.body
+        word = req.text.split()[-1] if req.text else "plant"
+        if word not in WORDS:
+            return EmbedReply(model="fake", error=f"unknown word {word!r}")
+        return EmbedReply(embedding=E[WORDS.index(word)], model="fake")
+
+    vl = TypedQueryable(session, topics.vl_embed, EmbedRequest, EmbedReply, embed, robot_id=cfg.robot_id, workers=2)
+    fusion = FakeFusion(session, topics, cfg.robot_id)
+    try:
+        yield cfg, fusion
+    finally:
+        fusion.close()
+        vl.close()
+        session.close()
+        stop.set()
+        router.join(timeout=10)
+
+
+def wait(cond, timeout: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.05)
+    return True
+
+
+def test_late_join_gap_and_answers(system):
+    cfg, fusion = system
+    fusion.add(seg(1, "chair"), publish=False)  # mapped before the query service existed
+    fusion.add(seg(2, "table"), publish=False)
+    node = QueryNode(cfg)
+    try:
+        with QueryClient(cfg.transport, robot_id=cfg.robot_id) as client:
+            assert wait(lambda: node.sync.synced and node.sync.graph_seq == 2), node.stats()
+            hits = client.query("a red chair", top_k=2)
+            assert [h.segment for h in hits] == [1, 2] and hits[0].score == pytest.approx(1.0)
+            assert client.last_graph_seq == 2
+            # Live deltas, then one lost on the way: the node resynchronises from a snapshot.
+            fusion.add(seg(3, "lamp"))
+            assert wait(lambda: node.sync.graph_seq == 3)
+            fusion.add(seg(4, "plant"), publish=False)
+            fusion.add(seg(5, "lamp"))
+            assert wait(lambda: node.sync.synced and node.sync.graph_seq == 5), node.stats()
+            assert node.sync.gaps == 1 and fusion.snapshots >= 2
+            assert [h.segment for h in client.query("lamp", top_k=2)] == [3, 5]
+            assert [h.segment for h in client.query("plant", top_k=1)] == [4]  # from the snapshot
+            # Refusals carry the reason and leave the service up.
+            with pytest.raises(QueryRefused, match="unknown word"):
+                client.query("a sofa")
+            with pytest.raises(QueryRefused, match="unknown room 9"):
+                client.query("chair", room=9)
+            with pytest.raises(QueryRefused, match="top_k"):
+                client.query("chair", top_k=10_000)
+            assert client.query("chair", top_k=1)[0].segment == 1
+    finally:
+        node.close()
+    assert node.stats()["refused"] == 3
+
+
+def test_no_graph_yet_is_an_error_not_an_empty_answer(system):
+    cfg, fusion = system
+    fusion.q.close()  # fusion is not there at all
+    node = QueryNode(cfg)
+    try:
+        with QueryClient(cfg.transport, robot_id=cfg.robot_id) as client:
+            with pytest.raises(QueryRefused, match="no graph yet"):
+                client.query("chair")
+    finally:
+        node.close()
+
+
+def test_many_clients_at_once_and_a_client_vanishing_mid_query(system):
+    cfg, fusion = system
+    for i, w in enumerate(WORDS * 5):
+        fusion.add(seg(i + 1, w))
+    node = QueryNode(cfg)
+    try:
+        assert wait(lambda: node.sync.synced and node.sync.graph_seq == 20), node.stats()
+        # A client that sends a query and closes its session before the answer.
+        rude = open_session(cfg.transport)
+        rude.get(Topics(cfg.robot_id).query, payload=encode(QueryRequest(text="chair"), robot_id="rude", seq=0, stamp=0.0))
+        rude.close()
+
+        def one_client(k: int) -> list[int]:
+            with QueryClient(cfg.transport, robot_id=cfg.robot_id) as client:
+                return [client.query(WORDS[(k + j) % 4], top_k=5)[0].segment for j in range(20)]
+
+        with ThreadPoolExecutor(8) as pool:
+            results = list(pool.map(one_client, range(8)))
+        for k, tops in enumerate(results):
+            # The best segment of each word is its first one (ties rank by id).
+            assert tops == [WORDS.index(WORDS[(k + j) % 4]) + 1 for j in range(20)]
+        stats = node.stats()
+        assert stats["query_link"]["handler_errors"] == 0 and stats["errors"] == 0
+    finally:
+        node.close()
