@@ -36,7 +36,7 @@ for p in (ROOT, ROOT / "tests" / "faults"):
         sys.path.insert(0, str(p))
 
 import zenoh  # noqa: E402
-from hostile import QUERYABLE, SUBSCRIBED, key_expr, payloads  # noqa: E402
+from hostile import QUERYABLE, SUBSCRIBED, key_expr, payloads, rss_mb  # noqa: E402
 
 from services.fusion.node import FusionNode  # noqa: E402
 from services.keyframe_vl.node import KeyframeVLNode  # noqa: E402
@@ -51,13 +51,6 @@ from shared.transport import open_session  # noqa: E402
 
 DEFAULT_OUT = ROOT / "benchmarks" / "out" / "fuzz.json"
 
-
-def rss_mb() -> float:
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    return 0.0
 
 
 def free_port() -> int:

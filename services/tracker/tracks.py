@@ -82,12 +82,8 @@ class TrackBook:
 
     def take_changes(self) -> tuple[list[Track], list[int]]:
         """Tracks changed and retired since the last call (for ``tracks/features``)."""
-        changed = [self.tracks[i] for i in sorted(self.changed) if i in self.tracks]
+        changed = [self.tracks[i] for i in sorted(self.changed)]
         retired = list(self.retired)
-        # Once its retirement is out, a track is never matched again: forgetting it (and its
-        # 3D footprint) keeps a long run's memory bounded.
-        for tid in retired:
-            self.tracks.pop(tid, None)
         self.changed.clear()
         self.retired.clear()
         return changed, retired

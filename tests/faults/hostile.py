@@ -175,3 +175,12 @@ def payloads(n: int, seed: int = 0, keys: dict[str, type] | None = None) -> Iter
 
 def key_expr(topics: Topics, key: str) -> str:
     return getattr(topics, key)
+
+
+def rss_mb() -> float:
+    """This process's resident memory (VmRSS), MB."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    return 0.0

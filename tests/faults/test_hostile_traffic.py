@@ -11,7 +11,7 @@ import time
 
 import pytest
 import zenoh
-from hostile import KINDS, QUERYABLE, SUBSCRIBED, key_expr, payloads
+from hostile import KINDS, QUERYABLE, SUBSCRIBED, key_expr, payloads, rss_mb
 
 from services.fusion.node import FusionNode
 from services.keyframe_vl.node import KeyframeVLNode
@@ -29,13 +29,6 @@ pytestmark = pytest.mark.faults
 
 N_PAYLOADS = 10_000
 
-
-def rss_mb() -> float:
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    return 0.0
 
 
 class Fuzzer:

@@ -154,16 +154,3 @@ def test_lost_pool_is_bounded_and_retires_the_oldest():
     assert [t.id for t in changed] == [0, 1, 2, 3] and retired == [0, 2]
     assert book.take_changes() == ([], [])
 
-
-def test_retired_tracks_are_forgotten_once_published():
-    """A long run must not keep every track it ever had (and its 3D footprint)."""
-    from services.tracker.tracks import TrackBook
-
-    book = TrackBook(max_lost=2)
-    f = np.ones(4, np.float32) / 2
-    ids = [book.new(f, 0).id for _ in range(5)]
-    book.lose(ids, count=1)  # the pool keeps 2: the 3 oldest retire
-    changed, retired = book.take_changes()
-    assert sorted(t.id for t in changed) == ids and retired == [0, 1, 2]  # new, then retired: both said
-    assert sorted(book.tracks) == [3, 4] and list(book.lost) == [3, 4]
-    assert book.take_changes() == ([], [])
