@@ -104,6 +104,9 @@ class FusionNode:
             except Exception:  # noqa: BLE001 - one bad message must not stop the map
                 self.errors += 1
                 log.exception("fusion failed on a %s", type(env.body).__name__)
+                if isinstance(env.body, TrackedFrame):
+                    # acknowledged all the same: a lossless source waits for it otherwise
+                    self.acks.put(FrameAck(frame_index=env.body.frame.frame_index, service="fusion"))
 
     def _handle(self, body) -> None:
         if isinstance(body, TrackFeatures):

@@ -104,6 +104,9 @@ class TrackerNode:
             except Exception:  # noqa: BLE001 - one bad message must not stop tracking
                 self.errors += 1
                 log.exception("tracker failed on a %s", type(env.body).__name__)
+                if isinstance(env.body, Frame):
+                    # acknowledged all the same: a lossless source waits for it otherwise
+                    self.acks.put(FrameAck(frame_index=env.body.frame_index, service="tracker"))
 
     def _on_frame(self, frame: Frame) -> None:
         self._apply_arrived()
