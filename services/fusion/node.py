@@ -203,7 +203,9 @@ class FusionNode:
             s.close()
         self._stop.set()
         self._worker.join(timeout=30)
-        if save and self.frames:
+        # A finished map was saved whole at its end; saving again would replace that snapshot
+        # with one whose mesh is only the active window.
+        if save and self.frames and not self.finished.is_set():
             with self._lock:
                 self.save()
         self.snapshots.close()
