@@ -44,6 +44,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from services.launch import Supervisor, plan_launch  # noqa: E402
+from shared.procfs import status_mb  # noqa: E402
 
 DEFAULT_OUT = ROOT / "benchmarks" / "out" / "load.json"
 SYNTHETIC = ROOT / "deploy" / "configs" / "synthetic.yaml"
@@ -57,16 +58,7 @@ def free_port() -> int:
 
 
 def rss_mb(pid: int | None) -> float | None:
-    if pid is None:
-        return None
-    try:
-        with open(f"/proc/{pid}/status") as f:
-            for line in f:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) / 1024
-    except OSError:
-        return None
-    return None
+    return None if pid is None else status_mb("VmRSS", pid)
 
 
 def make_sequence(path: Path, frames: int) -> Path:

@@ -279,26 +279,25 @@ def _cmd_query(args: argparse.Namespace) -> int:
             transport = transport.model_copy(update={"connect": args.connect})
         with QueryClient(transport, robot_id=args.robot or cfg.robot_id, timeout_s=args.timeout) as client:
             reply = client.ask(req)
-        if reply.error is not None:
-            raise CommandError(f"query refused: {reply.error}")
-        _print_hits(reply.hits, args.json, f"{text or args.image} (live, graph version {reply.graph_seq})")
-        return 0
-    if not pos or len(pos) > 2:
-        raise CommandError('give MAP_DIR and a query TEXT (or MAP_DIR --image FILE), or --live "TEXT"')
-    map_dir, text = Path(pos[0]), (pos[1] if len(pos) > 1 else None)
-    if not map_dir.is_dir():
-        raise CommandError(f"{map_dir}: no such map folder (for a running system use --live)")
-    req = _query_request(args, text)
-    from services.query.core import QueryError
-    from services.query.offline import OfflineQueries, map_config
+        where = f"live, graph version {reply.graph_seq}"
+    else:
+        if not pos or len(pos) > 2:
+            raise CommandError('give MAP_DIR and a query TEXT (or MAP_DIR --image FILE), or --live "TEXT"')
+        map_dir, text = Path(pos[0]), (pos[1] if len(pos) > 1 else None)
+        if not map_dir.is_dir():
+            raise CommandError(f"{map_dir}: no such map folder (for a running system use --live)")
+        req = _query_request(args, text)
+        from services.query.core import QueryError
+        from services.query.offline import OfflineQueries, map_config
 
-    try:
-        reply = OfflineQueries(map_dir, map_config(map_dir, args.config)).ask(req)
-    except QueryError as exc:
-        raise CommandError(str(exc)) from None
+        try:
+            reply = OfflineQueries(map_dir, map_config(map_dir, args.config)).ask(req)
+        except QueryError as exc:
+            raise CommandError(str(exc)) from None
+        where = str(map_dir)
     if reply.error is not None:
         raise CommandError(f"query refused: {reply.error}")
-    _print_hits(reply.hits, args.json, f"{text or args.image} ({map_dir})")
+    _print_hits(reply.hits, args.json, f"{text or args.image} ({where})")
     return 0
 
 
@@ -334,17 +333,12 @@ def _cmd_view(args: argparse.Namespace) -> int:
     if args.png is not None:
         import numpy as np
 
-        from services.viewer.render import render_map_png, render_query_sheet
+        from services.viewer.render import render_map_pictures
 
         state = MapStore(map_dir / "graph").load()
         traj = np.asarray(state.extra.get("trajectory", np.zeros((0, 3))))
-        args.png.mkdir(parents=True, exist_ok=True)
-        print(f"wrote {render_map_png(state.snapshot, args.png / 'map.png', trajectory=traj)}")
-        for i, (text, hits) in enumerate(queries.items()):
-            path = render_map_png(state.snapshot, args.png / f"query_{i}.png", trajectory=traj, hits=hits, query_text=text, title=f"query {text!r}")
+        for path in render_map_pictures(state.snapshot, args.png, queries, traj):
             print(f"wrote {path}")
-        if queries:
-            print(f"wrote {render_query_sheet(state.snapshot, args.png / 'queries.png', queries, trajectory=traj)}")
     if args.open:
         import shutil
 

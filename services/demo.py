@@ -147,7 +147,7 @@ def _finish(out: Path, seq: Path, map_dir: Path, plan, cfg_path: Path, why: str,
     from services.fusion.store import MapStore
     from services.query.evaluate import MapTruth, eval_queries
     from services.viewer.recording import write_map_recording
-    from services.viewer.render import render_map_png, render_query_sheet
+    from services.viewer.render import render_map_pictures
     from shared.eval import eval_instances, eval_openlex3d
 
     truth = MapTruth(map_dir, seq)
@@ -157,11 +157,9 @@ def _finish(out: Path, seq: Path, map_dir: Path, plan, cfg_path: Path, why: str,
     traj = np.asarray(state.extra.get("trajectory", np.zeros((0, 3))))
     hits_by_text = {q["query"]: q["hits"] for q in queries}
     pictures = out / "pictures"
-    render_map_png(state.snapshot, pictures / "map.png", trajectory=traj, title=f"{len(state.snapshot.segments)} segments, {len(state.snapshot.rooms)} rooms")
+    render_map_pictures(state.snapshot, pictures, hits_by_text, trajectory=traj)
     for i, q in enumerate(queries):
         q["png"] = f"pictures/query_{i}.png"
-        render_map_png(state.snapshot, out / q["png"], trajectory=traj, hits=q["hits"], query_text=q["query"], title=f"query: {q['query']}")
-    render_query_sheet(state.snapshot, pictures / "queries.png", hits_by_text, trajectory=traj)
     write_map_recording(map_dir, out / "map.rrd", queries=hits_by_text)
 
     metrics = {

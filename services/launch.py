@@ -31,6 +31,7 @@ from typing import Any
 from shared.config.base import ConfigError, save_resolved, validate
 from shared.config.launch import LaunchConfig, RestartPolicy, ServiceSpec, load_launch
 from shared.config.root import TrackGraphConfig
+from shared.procfs import status_mb
 
 log = logging.getLogger(__name__)
 
@@ -393,14 +394,7 @@ class _StatusView:
 
 def _peak_rss_mb(pid: int) -> float:
     """The process's high-water resident memory (VmHWM), 0 where /proc cannot tell."""
-    try:
-        with open(f"/proc/{pid}/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024
-    except (OSError, ValueError):
-        pass
-    return 0.0
+    return status_mb("VmHWM", pid) or 0.0
 
 
 def _port_open(endpoints: list[str]) -> bool:

@@ -6,15 +6,14 @@ import os
 import tempfile
 from pathlib import Path
 
+from shared.procfs import status_field
+
 
 def _umask() -> int:
     # Linux reports it without changing it; setting and restoring it races other threads.
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("Umask:"):
-                return int(line.split()[1], 8)
-    except OSError:
-        pass
+    value = status_field("Umask")
+    if value:
+        return int(value, 8)
     mask = os.umask(0o022)
     os.umask(mask)
     return mask

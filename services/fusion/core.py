@@ -135,8 +135,11 @@ class FusionCore:
         if len(arch) == 0:
             return active
         win = arch.winners()
-        seg_of = {int(t): s for t in np.unique(win[win >= 0]) if (s := self.segments.segment_of_track(int(t))) is not None}
-        seg = np.array([seg_of.get(int(t), -1) for t in win], np.int32)
+        has = win >= 0
+        tracks, inverse = np.unique(win[has], return_inverse=True)
+        seg_of = np.array([-1 if (s := self.segments.segment_of_track(int(t))) is None else s for t in tracks], np.int32)
+        seg = np.full(len(win), -1, np.int32)
+        seg[has] = seg_of[inverse]
         n = len(active.vertices)
         return MeshChunk(
             vertices=np.concatenate([active.vertices, arch.vertices]),

@@ -104,8 +104,9 @@ class FusionNode:
             except Exception:  # noqa: BLE001 - one bad message must not stop the map
                 self.errors += 1
                 log.exception("fusion failed on a %s", type(env.body).__name__)
+            finally:
                 if isinstance(env.body, TrackedFrame):
-                    # acknowledged all the same: a lossless source waits for it otherwise
+                    # fused, already in the map, or failed: a lossless source waits for it
                     self.acks.put(FrameAck(frame_index=env.body.frame.frame_index, service="fusion"))
 
     def _handle(self, body) -> None:
@@ -118,13 +119,11 @@ class FusionNode:
         elif body.frame.frame_index <= self.core.last_frame_index:
             # already in the map (resumed from a snapshot past it, or delivered twice)
             self.duplicates += 1
-            self.acks.put(FrameAck(frame_index=body.frame.frame_index, service="fusion"))
             return
         else:
             if self._first_frame_at is None:
                 self._first_frame_at = time.monotonic()
             delta = self.core.add_frame(body)
-            self.acks.put(FrameAck(frame_index=body.frame.frame_index, service="fusion"))
             self.frames += 1
             if delta is not None:
                 self.deltas.put(delta)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
+from collections.abc import Callable
 from typing import Annotated
 
 import numpy as np
@@ -14,33 +15,44 @@ from services.keyframe_vl.types import VLEncoder
 from shared.messages.rpc import EmbedReply, EmbedRequest
 
 
+class TextCache:
+    """The newest ``size`` text embeddings (clients repeat the same prompts), shared by the
+    threads of a queryable; ``size`` 0 remembers nothing."""
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self._items: OrderedDict[str, np.ndarray] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, text: str, compute: Callable[[], np.ndarray]) -> Annotated[np.ndarray, "(D,) float32"]:
+        """The cached embedding of ``text``, else ``compute()``'s, remembered."""
+        with self._lock:
+            hit = self._items.get(text)
+            if hit is not None:
+                self._items.move_to_end(text)
+                return hit
+        vec = compute()  # outside the lock: an encoder or a round trip may take a while
+        if self.size:
+            with self._lock:
+                self._items[text] = vec
+                while len(self._items) > self.size:
+                    self._items.popitem(last=False)
+        return vec
+
+
 class Embedder:
-    """One encoder and its text cache (clients repeat the same prompts)."""
+    """One encoder and its text cache."""
 
     def __init__(self, encoder: VLEncoder, cache_size: int = 256) -> None:
         self.encoder = encoder
-        self.cache_size = cache_size
-        self._text_cache: OrderedDict[str, np.ndarray] = OrderedDict()
-        self._lock = threading.Lock()
-        """Queryables answer on several threads; the cache is shared by them."""
+        self._cache = TextCache(cache_size)
 
     @property
     def name(self) -> str:
         return self.encoder.name
 
     def embed_text(self, text: str) -> Annotated[np.ndarray, "(D,) float32"]:
-        with self._lock:
-            hit = self._text_cache.get(text)
-            if hit is not None:
-                self._text_cache.move_to_end(text)
-                return hit
-        vec = np.asarray(self.encoder.encode_text([text])[0], np.float32)
-        if self.cache_size:
-            with self._lock:
-                self._text_cache[text] = vec
-                while len(self._text_cache) > self.cache_size:
-                    self._text_cache.popitem(last=False)
-        return vec
+        return self._cache.get(text, lambda: np.asarray(self.encoder.encode_text([text])[0], np.float32))
 
     def embed(self, req: EmbedRequest) -> EmbedReply:
         """Text or image to the encoder's space; failures come back as an error reply."""

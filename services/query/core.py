@@ -45,6 +45,7 @@ class QueryIndex:
     """Segments with at least one gallery row, in id order."""
     gallery: Annotated[np.ndarray, "(R, D) float32 unit rows"]
     row_start: Annotated[np.ndarray, "(S + 1,) int64: segment s owns rows row_start[s]:row_start[s+1]"]
+    row_segment: Annotated[np.ndarray, "(R,) int64 segment of each gallery row"]
     mean: Annotated[np.ndarray, "(S, D) float32 unit mean gallery feature per segment"]
     centroids: Annotated[np.ndarray, "(S, 3) float64"]
     rooms: Annotated[np.ndarray, "(S,) int64 room id, -1 for none"]
@@ -74,6 +75,7 @@ class QueryIndex:
             segments=segs,
             gallery=rows,
             row_start=row_start,
+            row_segment=np.repeat(np.arange(len(segs)), counts),
             mean=mean,
             centroids=np.array([s.centroid for s in segs], np.float64).reshape(-1, 3),
             rooms=np.array([-1 if s.room is None else s.room for s in segs], np.int64),
@@ -103,8 +105,7 @@ class QueryIndex:
         starts = self.row_start[:-1]
         best = np.maximum.reduceat(cos, starts)
         # The row holding each segment's maximum, the first one on ties.
-        seg_of_row = np.repeat(np.arange(len(self)), np.diff(self.row_start))
-        at_max = np.where(cos == best[seg_of_row], np.arange(len(cos)), len(cos))
+        at_max = np.where(cos == best[self.row_segment], np.arange(len(cos)), len(cos))
         first = np.minimum.reduceat(at_max, starts).astype(np.int64)
         if gallery == "mean":
             return (self.mean @ q).astype(np.float32), first

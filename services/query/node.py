@@ -11,11 +11,11 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections import OrderedDict
 
 import numpy as np
 
 from services.fusion.graph import GraphReplica
+from services.keyframe_vl.embedder import Embedder, TextCache
 from services.query.core import QueryEngine, QueryError, QueryIndex
 from services.query.sync import ReplicaSync
 from shared.config.root import TrackGraphConfig
@@ -49,13 +49,12 @@ class QueryNode:
         codec = cfg.transport.codec
         self._embedder = None
         if cfg.query.embed == "local":
-            from services.keyframe_vl.embedder import Embedder
             from services.keyframe_vl.encoders import make_vl_encoder
 
             self._embedder = Embedder(make_vl_encoder(cfg.keyframe_vl.vl), cfg.keyframe_vl.embed_cache_size)
         self.engine = QueryEngine(cfg.query, self._embed)
-        self._text_cache: OrderedDict[str, np.ndarray] = OrderedDict()
-        self._cache_lock = threading.Lock()
+        self._text_cache = TextCache(0 if self._embedder is not None else cfg.query.embed_cache_size)
+        """Remote embeddings only: the local Embedder keeps its own cache."""
         self.index = QueryIndex.empty()
         self.sync = ReplicaSync(on_change=self._rebuild)
         self.queries = 0
@@ -116,18 +115,8 @@ class QueryNode:
     def _embed(self, req: EmbedRequest) -> np.ndarray:
         # Clients repeat prompts; a remembered text embedding saves the vl/embed round trip.
         if req.text is not None:
-            with self._cache_lock:
-                hit = self._text_cache.get(req.text)
-                if hit is not None:
-                    self._text_cache.move_to_end(req.text)
-                    return hit
-        vec = self._embed_uncached(req)
-        if req.text is not None and self.cfg.query.embed_cache_size:
-            with self._cache_lock:
-                self._text_cache[req.text] = vec
-                while len(self._text_cache) > self.cfg.query.embed_cache_size:
-                    self._text_cache.popitem(last=False)
-        return vec
+            return self._text_cache.get(req.text, lambda: self._embed_uncached(req))
+        return self._embed_uncached(req)
 
     def _embed_uncached(self, req: EmbedRequest) -> np.ndarray:
         if self._embedder is not None:

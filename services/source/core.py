@@ -92,7 +92,7 @@ def replay(
             continue
         if number != i:
             lap = number // n
-            frame = frame.model_copy(update={"frame_index": number, "time_s": frame.time_s + lap * (n / max(cfg.rate_hz, 1e-9))})
+            frame = frame.model_copy(update={"frame_index": number, "time_s": frame.time_s + lap * n / cfg.rate_hz})
         publish(frame)
         stats.published += 1
         stats.last_frame_index = number
@@ -157,9 +157,13 @@ class Pacer:
                 self._gone.add(s)
         return {s for s in self.stages if s in alive or now - self.last_seen.get(s, -math.inf) < self.hold_gone_s}
 
+    def _holding(self, k: int, alive: set[str]) -> set[str]:
+        """The counted stages that have not yet acknowledged frame k - ``window``."""
+        return {s for s in self.counted(alive, k) if self.done.get(s, -1) < k - self.window}
+
     def ready(self, k: int, alive: set[str]) -> bool:
         with self._cv:
-            return all(self.done.get(s, -1) >= k - self.window for s in self.counted(alive, k))
+            return not self._holding(k, alive)
 
     def wait(self, k: int, alive: Callable[[], set[str]], should_stop: Callable[[], bool], poll_s: float = 0.1) -> None:
         """Block until frame ``k`` may go, or ``should_stop``; ``alive`` is re-read while
@@ -168,10 +172,10 @@ class Pacer:
         with self._cv:
             while not should_stop():
                 now_alive = alive()
-                counted = self.counted(now_alive, k)
-                if all(self.done.get(s, -1) >= k - self.window for s in counted):
+                holding = self._holding(k, now_alive)
+                if not holding:
                     return
-                gone = sorted(counted - now_alive)
+                gone = sorted(holding - now_alive)
                 if gone:
                     if not warned:
                         log.warning("frame %d waits for %s to come back (up to %.0f s)", k, ", ".join(gone), self.hold_gone_s)

@@ -408,9 +408,8 @@ class TrackerCore:
             log.warning("frame %d: %d CLIP features for %d masks; ignored", frame_index, features.shape[0], len(ids))
             return
         for tid, f in zip(ids, features, strict=True):
-            track = self.book.tracks.get(tid) if tid >= 0 else None
-            if track is not None:  # None: retired (and forgotten) before its CLIP came back
-                track.add_clip(np.asarray(f, np.float32))
+            if tid >= 0:
+                self.book.tracks[tid].add_clip(np.asarray(f, np.float32))
                 self.book.changed.add(tid)
 
     def take_track_features(self, frame_index: int) -> TrackFeatures | None:

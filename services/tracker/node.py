@@ -104,8 +104,9 @@ class TrackerNode:
             except Exception:  # noqa: BLE001 - one bad message must not stop tracking
                 self.errors += 1
                 log.exception("tracker failed on a %s", type(env.body).__name__)
+            finally:
                 if isinstance(env.body, Frame):
-                    # acknowledged all the same: a lossless source waits for it otherwise
+                    # tracked or failed: a lossless source waits for it
                     self.acks.put(FrameAck(frame_index=env.body.frame_index, service="tracker"))
 
     def _on_frame(self, frame: Frame) -> None:
@@ -122,7 +123,6 @@ class TrackerNode:
         if feats is not None:
             self.features.put(feats)
         self.tracked.put(tracked)
-        self.acks.put(FrameAck(frame_index=frame.frame_index, service="tracker"))
         self.frames += 1
         self._last_index = frame.frame_index
 

@@ -237,9 +237,7 @@ def _save(fig: Figure, out_png: Path) -> Path:
     FigureCanvasAgg(fig)
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=DPI)
-    path = atomic_write_bytes(Path(out_png), buf.getvalue())
-    path.chmod(0o644)  # the temp file is private (0600); a report image is for sharing
-    return path
+    return atomic_write_bytes(Path(out_png), buf.getvalue())
 
 
 def _summary(snapshot: GraphSnapshot) -> str:
@@ -307,3 +305,23 @@ def render_query_sheet(
         ax.set_ylabel(view.labels[1], fontsize=7)
     fig.suptitle(title or _summary(snapshot), fontsize=11)
     return _save(fig, out_png)
+
+
+def render_map_pictures(
+    snapshot: GraphSnapshot,
+    out_dir: Path,
+    queries: dict[str, list[QueryHit]],
+    trajectory: Trajectory | None = None,
+    *,
+    up: Up = "z",
+) -> list[Path]:
+    """``map.png``, ``query_<i>.png`` for each query and, with queries, ``queries.png``:
+    the pictures of ``trackgraph view --png`` and of the demo."""
+    out_dir = Path(out_dir)
+    title = f"{len(snapshot.segments)} segments, {len(snapshot.rooms)} rooms"
+    paths = [render_map_png(snapshot, out_dir / "map.png", trajectory=trajectory, title=title, up=up)]
+    for i, (text, hits) in enumerate(queries.items()):
+        paths.append(render_map_png(snapshot, out_dir / f"query_{i}.png", trajectory=trajectory, hits=hits, query_text=text, title=f"query: {text}", up=up))
+    if queries:
+        paths.append(render_query_sheet(snapshot, out_dir / "queries.png", queries, trajectory, up=up))
+    return paths

@@ -35,6 +35,7 @@ from shared.messages.frames import EndOfSequence, Frame, FrameAck, TrackedFrame
 from shared.messages.graph import GraphDelta, SnapshotRequest
 from shared.messages.keyframes import KeyframeMasks, KeyframeRequest, MaskFeatures, TrackFeatures
 from shared.messages.rpc import EmbedRequest, QueryRequest
+from shared.procfs import status_mb
 from shared.topics import Topics
 
 SUBSCRIBED = {
@@ -179,8 +180,4 @@ def key_expr(topics: Topics, key: str) -> str:
 
 def rss_mb() -> float:
     """This process's resident memory (VmRSS), MB."""
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    return 0.0
+    return status_mb("VmRSS") or 0.0

@@ -17,15 +17,6 @@ pytestmark = pytest.mark.faults
 FRAMES = 12
 
 
-@pytest.fixture(scope="module")
-def small(tmp_path_factory):
-    from shared.synth import run_synth
-
-    out = tmp_path_factory.mktemp("synth") / "small"
-    run_synth("small", 0, out)
-    return out
-
-
 def config() -> TrackGraphConfig:
     return TrackGraphConfig.model_validate({
         "keyframe_vl": {"segmenter": {"backend": "simulated"}, "vl": {"backend": "simulated"}},

@@ -67,15 +67,6 @@ class Fuzzer:
         self.session.close()
 
 
-@pytest.fixture(scope="module")
-def small(tmp_path_factory):
-    from shared.synth import run_synth
-
-    out = tmp_path_factory.mktemp("synth") / "small"
-    run_synth("small", 0, out)
-    return out
-
-
 def rejected(stats) -> int:
     return stats.rejected + stats.dropped
 

@@ -31,15 +31,6 @@ SYNTHETIC = ROOT / "deploy" / "configs" / "synthetic.yaml"
 FRAMES = 120
 
 
-@pytest.fixture(scope="module")
-def small(tmp_path_factory):
-    from shared.synth import run_synth
-
-    out = tmp_path_factory.mktemp("synth") / "small"
-    run_synth("small", 0, out)
-    return out
-
-
 def write_launch(tmp: Path, port: int, services: list[dict], overrides: dict | None = None, **extra) -> Path:
     base = {
         "tracker": {"wait_for_masks": True, "device": "cpu", "keyframe_timeout_s": 2.0},
@@ -66,7 +57,8 @@ class Run:
     """A Supervisor on its own thread, and a session that watches acknowledgements."""
 
     def __init__(self, path: Path, sequence: Path | None, out: Path | None) -> None:
-        self.plan = plan_launch(path, sequence=sequence, out=out)
+        # logs beside the launch file: without a map folder they would go to ./trackgraph-logs
+        self.plan = plan_launch(path, sequence=sequence, out=out, log_dir=path.parent / "logs")
         self.sup = Supervisor(self.plan, status=False)
         self.thread = threading.Thread(target=self.sup.run, daemon=True)
         self.acked: dict[str, int] = {}
