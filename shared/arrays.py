@@ -32,6 +32,17 @@ ALLOWED_DTYPES = frozenset(
 )
 """The only dtypes that may cross the wire: no objects, strings, structured or big-endian."""
 
+_NAMES = {np.dtype(n): n for n in ALLOWED_DTYPES}
+
+
+def dtype_name(dtype: np.dtype) -> str:
+    """``dtype.name``, from a table for the allowed dtypes: numpy builds the name in Python
+    on every access, and a message of many small arrays asks for it thousands of times."""
+    name = _NAMES.get(dtype)
+    if name is None and dtype.byteorder == ">":
+        name = _NAMES.get(dtype.newbyteorder("<"))
+    return name if name is not None else dtype.name
+
 
 @dataclass(frozen=True)
 class ArraySpec:
@@ -50,7 +61,7 @@ class ArraySpec:
     def validate(self, value: Any) -> np.ndarray:
         if isinstance(value, np.ndarray):
             arr = value
-            if arr.dtype.name not in self.dtypes:
+            if dtype_name(arr.dtype) not in self.dtypes:
                 raise ValueError(f"dtype {arr.dtype.name} not allowed, expected {'/'.join(self.dtypes)}")
         else:
             if isinstance(value, (list, tuple)) and any(isinstance(v, np.ndarray) for v in value):
@@ -61,7 +72,7 @@ class ArraySpec:
                 if probe.dtype.kind not in "biuf":
                     raise ValueError(f"elements are {probe.dtype.name}, not numbers")
                 with np.errstate(all="ignore"):
-                    arr = probe.astype(self.dtypes[0]) if probe.dtype.name != self.dtypes[0] else probe
+                    arr = probe.astype(self.dtypes[0]) if dtype_name(probe.dtype) != self.dtypes[0] else probe
                     lossy = arr.dtype.kind in "iub" and not np.array_equal(arr.astype(probe.dtype), probe)
                 if lossy:
                     raise ValueError(f"values not representable as {self.dtypes[0]}")

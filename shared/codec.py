@@ -30,7 +30,7 @@ import numpy as np
 from pydantic import BaseModel, ValidationError
 
 from shared import SCHEMA_VERSION
-from shared.arrays import ALLOWED_DTYPES, ArraySpec, spec_of
+from shared.arrays import ALLOWED_DTYPES, ArraySpec, dtype_name, spec_of
 from shared.config.transport import CodecConfig
 
 M = TypeVar("M", bound=BaseModel)
@@ -67,13 +67,14 @@ def _rle_decode(runs: np.ndarray, total: int) -> np.ndarray:
 
 
 def _encode_array(arr: np.ndarray, spec: ArraySpec | None, cfg: CodecConfig) -> dict:
-    if arr.dtype.name not in ALLOWED_DTYPES:
+    name = dtype_name(arr.dtype)
+    if name not in ALLOWED_DTYPES:
         raise CodecError(f"dtype {arr.dtype.name} cannot be sent")
     arr = np.ascontiguousarray(arr)
     if arr.dtype.byteorder == ">":
         arr = arr.astype(arr.dtype.newbyteorder("<"))
     kind = spec.kind if spec is not None else "plain"
-    head = {"dtype": arr.dtype.name, "shape": list(arr.shape)}
+    head = {"dtype": name, "shape": list(arr.shape)}
     if kind == "rgb" and cfg.rgb == "jpeg" and arr.dtype == np.uint8 and arr.ndim == 3 and arr.shape[2] == 3 and arr.size:
         from PIL import Image
 
@@ -179,14 +180,25 @@ def _decode_array(obj: dict, cfg: CodecConfig) -> np.ndarray:
 # ---------------------------------------------------------------- model walking
 
 
+_SPECS: dict[type, tuple[tuple[str, ArraySpec | None], ...]] = {}
+
+
+def _field_specs(cls: type[BaseModel]) -> tuple[tuple[str, ArraySpec | None], ...]:
+    """Each field's name and ArraySpec (an optional array's spec sits inside its union), once per class."""
+    specs = _SPECS.get(cls)
+    if specs is None:
+        specs = _SPECS[cls] = tuple(
+            (name, spec_of([*f.metadata, *(m for a in getattr(f.annotation, "__args__", ()) for m in getattr(a, "__metadata__", ()))]))
+            for name, f in cls.model_fields.items()
+        )
+    return specs
+
+
 def _to_wire(value: Any, spec: ArraySpec | None, cfg: CodecConfig) -> Any:
     if isinstance(value, np.ndarray):
         return _encode_array(value, spec, cfg)
     if isinstance(value, BaseModel):
-        out = {}
-        for name, field in type(value).model_fields.items():
-            out[name] = _to_wire(getattr(value, name), spec_of([*field.metadata, *(m for a in getattr(field.annotation, "__args__", ()) for m in getattr(a, "__metadata__", ()))]), cfg)
-        return out
+        return {name: _to_wire(getattr(value, name), spec, cfg) for name, spec in _field_specs(type(value))}
     if isinstance(value, (list, tuple)):
         return [_to_wire(v, None, cfg) for v in value]
     if isinstance(value, dict):

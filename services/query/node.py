@@ -105,7 +105,10 @@ class QueryNode:
 
     def _rebuild(self, replica: GraphReplica) -> None:
         try:
-            self.index = QueryIndex.build(replica.graph_seq, replica.segments.values(), replica.rooms, min_view_share=self.cfg.query.min_view_share)
+            self.index = QueryIndex.build(
+                replica.graph_seq, replica.segments.values(), replica.rooms,
+                min_view_share=self.cfg.query.min_view_share, previous=self.index,
+            )  # fmt: skip
         except QueryError as exc:
             self.errors += 1
             log.error("graph version %d not indexed: %s", replica.graph_seq, exc)

@@ -144,3 +144,18 @@ def test_json_rows_have_the_contract_keys():
     (row,) = hit_rows(hits)
     assert {"segment", "score", "centroid", "bbox"} <= set(row)
     assert row["segment"] == 1 and len(row["bbox"]) == 2 and len(row["centroid"]) == 3
+
+
+def test_a_rebuild_reuses_unchanged_segments_and_equals_a_fresh_build():
+    first = QueryIndex.build(1, SEGMENTS, min_view_share=0.0)
+    changed = seg(2, [unit([0.1, 0.9, 0.3, 0]), E[3], E[0]], room=0, at=(1, 2, 3))
+    now = [SEGMENTS[0], changed, seg(7, [E[2]])]  # 3 and 4 gone, 2 changed, 7 new
+    again = QueryIndex.build(2, now, [0, 1], previous=first)
+    fresh = QueryIndex.build(2, now, [0, 1])
+    assert again.blocks[1] is first.blocks[1]  # same segment object: not normalised again
+    assert again.blocks[2] is not first.blocks[2] and set(again.blocks) == {1, 2, 7}
+    for name in ("gallery", "row_start", "row_segment", "mean", "centroids", "rooms"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(fresh, name), err_msg=name)
+    assert [s.id for s in again.segments] == [1, 2, 7] and again.room_ids == fresh.room_ids
+    for text in ("x", "y", "mix"):
+        assert engine().answer(again, QueryRequest(text=text)) == engine().answer(fresh, QueryRequest(text=text))
