@@ -281,8 +281,11 @@ class Supervisor:
                 self._crashed(p, f"not alive {self.launch.alive_timeout_s:.0f} s after start")
             elif p.state in ("alive", "unresponsive") and name != "router":
                 p.gone_since = p.gone_since or now
-                # A token can blink while a link re-forms; only a lasting absence is news.
-                if p.state == "alive" and now - p.gone_since > min(REPORT_GONE_S, self.launch.unresponsive_s):
+                # A token can blink while a link re-forms; only a lasting absence is news. A
+                # finite service drops its token as it shuts down, and may take a few seconds to
+                # exit after that (a large heap to free): only the restart threshold tells.
+                report_after = self.launch.unresponsive_s if p.spec.is_finite else min(REPORT_GONE_S, self.launch.unresponsive_s)
+                if p.state == "alive" and now - p.gone_since > report_after:
                     p.state = "unresponsive"
                     self._event(f"{p.name} unresponsive (liveliness token gone)")
                 if now - p.gone_since > self.launch.unresponsive_s:
