@@ -31,7 +31,8 @@ class Track:
     clip: Annotated[np.ndarray, "(Dc,) float32"] | None = None
     clip_count: int = 0
     footprint: Footprint | None = None
-    """World points under the keyframe masks assigned to the track (``footprints``)."""
+    """World points under the keyframe masks assigned to the track (``footprints``); None
+    once the track is retired."""
 
     def detected(self, feature: np.ndarray, count: int, eta: float) -> None:
         self.dino = ema(self.dino, feature, eta)
@@ -69,7 +70,7 @@ class TrackBook:
             self.lost.move_to_end(tid)
         while len(self.lost) > self.max_lost:
             tid, _ = self.lost.popitem(last=False)
-            self.retired.append(tid)
+            self._retire(tid)
 
     def revive(self, tid: int) -> None:
         del self.lost[tid]
@@ -78,7 +79,14 @@ class TrackBook:
         """Lost tracks that will not be re-identified any more."""
         for tid in ids:
             del self.lost[tid]
-            self.retired.append(tid)
+            self._retire(tid)
+
+    def _retire(self, tid: int) -> None:
+        # The track object stays: frames propagated before its retirement still carry its id,
+        # and late CLIP features still fold into its mean. Only re-identification reads the
+        # footprint (up to 4,000 points), so it goes; keeping it grew a live tracker without bound.
+        self.tracks[tid].footprint = None
+        self.retired.append(tid)
 
     def take_changes(self) -> tuple[list[Track], list[int]]:
         """Tracks changed and retired since the last call (for ``tracks/features``)."""

@@ -154,3 +154,20 @@ def test_lost_pool_is_bounded_and_retires_the_oldest():
     assert [t.id for t in changed] == [0, 1, 2, 3] and retired == [0, 2]
     assert book.take_changes() == ([], [])
 
+
+
+def test_a_retired_track_keeps_its_identity_but_not_its_footprint():
+    """Only re-identification reads footprints; a live tracker retires tracks all the time."""
+    from services.tracker.footprints import Footprint
+
+    book = TrackBook(max_lost=1)
+    for _ in range(3):
+        t = book.new(E[0], 0)
+        t.footprint = Footprint(np.zeros((4000, 3), np.float32), 0.01)
+    book.lose([0, 1], count=5)  # the pool holds one: track 0 is retired
+    book.retire([1])
+    assert book.tracks[0].footprint is None and book.tracks[1].footprint is None
+    assert book.tracks[2].footprint is not None  # active
+    assert sorted(book.tracks) == [0, 1, 2] and book.tracks[0].dino is not None
+    book.tracks[0].add_clip(E[1])  # a late CLIP feature of a retired track still folds in
+    assert book.tracks[0].clip_count == 1
