@@ -198,9 +198,11 @@ def main() -> int:
             c.start()
         # Spawned clients take seconds to import on 2 cores; staggered starts would overlap
         # fewer of them and flatter the latency.
-        for _ in clients:
-            if q.get(timeout=120) != "ready":
-                raise SystemExit("a client failed before it was ready")
+        try:
+            for _ in clients:
+                q.get(timeout=120)
+        except queue.Empty:
+            raise SystemExit("a client did not open its session within 120 s") from None
         start_at = time.time()
         go.set()
 

@@ -20,6 +20,7 @@ a consumer that edits an array in place copies it first.
 
 from __future__ import annotations
 
+import functools
 import io
 import math
 import zlib
@@ -180,18 +181,13 @@ def _decode_array(obj: dict, cfg: CodecConfig) -> np.ndarray:
 # ---------------------------------------------------------------- model walking
 
 
-_SPECS: dict[type, tuple[tuple[str, ArraySpec | None], ...]] = {}
-
-
+@functools.cache
 def _field_specs(cls: type[BaseModel]) -> tuple[tuple[str, ArraySpec | None], ...]:
     """Each field's name and ArraySpec (an optional array's spec sits inside its union), once per class."""
-    specs = _SPECS.get(cls)
-    if specs is None:
-        specs = _SPECS[cls] = tuple(
-            (name, spec_of([*f.metadata, *(m for a in getattr(f.annotation, "__args__", ()) for m in getattr(a, "__metadata__", ()))]))
-            for name, f in cls.model_fields.items()
-        )
-    return specs
+    return tuple(
+        (name, spec_of([*f.metadata, *(m for a in getattr(f.annotation, "__args__", ()) for m in getattr(a, "__metadata__", ()))]))
+        for name, f in cls.model_fields.items()
+    )
 
 
 def _to_wire(value: Any, spec: ArraySpec | None, cfg: CodecConfig) -> Any:

@@ -155,7 +155,6 @@ def test_lost_pool_is_bounded_and_retires_the_oldest():
     assert book.take_changes() == ([], [])
 
 
-
 def test_a_retired_track_keeps_its_identity_but_not_its_footprint():
     """Only re-identification reads footprints; a live tracker retires tracks all the time."""
     from services.tracker.footprints import Footprint
