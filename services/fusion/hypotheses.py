@@ -4,8 +4,9 @@ The vote is pixel-driven. Each pixel with a valid depth is back-projected to its
 and lands in the voxel nearest to that point, ``round(p / voxel_size)`` (Open3D places voxel
 centres at integer multiples of the voxel size). Only that surface voxel votes, not the other
 voxels of the truncation band along the ray: mesh vertices sit on the zero crossing and take
-their hypotheses from their nearest voxel (:mod:`services.fusion.mesh`), so the surface voxels
-are the ones the segments read, and one voxel per pixel keeps the vote O(pixels).
+their hypotheses from the two voxels of the grid edge they lie on (:mod:`services.fusion.mesh`),
+so the surface voxels are the ones the segments read, and one voxel per pixel keeps the vote
+O(pixels).
 
 A voxel usually covers many pixels (about 50 for a 3 cm voxel seen from 2 m at 640x480), while
 eq. 5 adds one TSDF observation weight per frame, and Open3D's ``integrate`` gives every

@@ -1,10 +1,18 @@
 """Marching cubes of the active grid with the per-voxel hypotheses moved onto the vertices (III-C).
 
 Open3D's ``extract_triangle_mesh`` interpolates positions and colours but carries no custom
-attribute, so each vertex takes the hypotheses of its nearest voxel: a vertex lies on the edge
-between two voxels, and the nearer of the two is ``round(p / voxel_size)``, the same rule the
-pixel vote uses for surface points (:mod:`services.fusion.hypotheses`). Colours are Open3D's,
-interpolated along the edge from the same voxel colours.
+attribute, so the hypotheses are carried over here. A marching-cubes vertex lies on the grid
+edge between two voxel centres, the two voxels whose signed distances put it there: its
+supporting voxels. The vertex takes both voxels' hypotheses, each weight scaled by the same
+linear interpolation factor Open3D applies to the colours along that edge, with one slot per
+track (weights of a track present in both added) and the K strongest kept.
+
+Taking both ends, not only the nearer one, matters because the pixel vote lands in one voxel
+per pixel, ``round(p / voxel_size)`` (:mod:`services.fusion.hypotheses`): where only a few
+frames voted (keyframes, when propagated pixels are too unsure to vote), the nearer end of an
+edge is often a voxel no pixel landed in while the farther end holds the votes. On the
+``small`` preset with noise-free keyframe masks, nearest-voxel transfer left 23% of the
+vertices without any hypothesis (and so without a segment); both ends leave 7%.
 
 Open3D's vertex order follows its hash-map buffer layout and thread scheduling, which a saved
 and reloaded grid does not reproduce. Vertices are therefore sorted by position and faces by
@@ -125,16 +133,74 @@ def extract_hypothesis_mesh(
         col = np.zeros((len(pos), 3), np.uint8)
     perm, faces = canonical_order(pos, faces)
     pos, col = pos[perm], col[perm]
-    flat = voxel_flat_index(vbg, pos, voxel_size, res)
-    codes = gather_rows(vbg, "hyp_id", flat, 0).astype(np.int32)
-    weights = gather_rows(vbg, "hyp_w", flat, 0.0).astype(np.float32)
+    ends, share = edge_ends(pos, voxel_size)
+    ids, weights = [], []
+    for end, frac in zip(ends, share, strict=True):
+        flat = voxel_flat_index(vbg, end, voxel_size, res)
+        ids.append(gather_rows(vbg, "hyp_id", flat, 0).astype(np.int32) - 1)
+        weights.append(gather_rows(vbg, "hyp_w", flat, 0.0).astype(np.float64) * frac[:, None])
+    hyp_ids, hyp_weights = merge_hypotheses(ids[0], weights[0], ids[1], weights[1], k)
     return HypothesisMesh(
         vertices=np.ascontiguousarray(pos), colors=np.ascontiguousarray(col), faces=faces,
-        hyp_ids=codes - 1, hyp_weights=weights,
+        hyp_ids=hyp_ids, hyp_weights=hyp_weights,
     )  # fmt: skip
+
+
+def edge_ends(
+    points: Annotated[np.ndarray, "(V, 3) float world metres, on grid edges"], voxel_size: float
+) -> tuple[
+    tuple[Annotated[np.ndarray, "(V, 3) float64 metres"], Annotated[np.ndarray, "(V, 3) float64 metres"]],
+    tuple[Annotated[np.ndarray, "(V,) float64 in [0, 1]"], Annotated[np.ndarray, "(V,) float64 in [0, 1]"]],
+]:
+    """The two voxel centres of the grid edge each vertex lies on, and each end's interpolation
+    share (1 - t, t), t being the vertex's position along the edge from the first end.
+
+    The edge runs along the axis where the vertex is farthest from a voxel centre (the other two
+    coordinates are voxel-centre coordinates, up to float32 rounding); a vertex exactly on a
+    voxel centre gets that voxel with share 1 and its neighbour with share 0."""
+    g = np.asarray(points, np.float64) / voxel_size
+    near = np.rint(g)
+    axis = np.argmax(np.abs(g - near), axis=1)
+    rows = np.arange(len(g))
+    lo = near.copy()
+    lo[rows, axis] = np.floor(g[rows, axis])
+    hi = lo.copy()
+    hi[rows, axis] += 1.0
+    t = np.clip(g[rows, axis] - lo[rows, axis], 0.0, 1.0)
+    return (lo * voxel_size, hi * voxel_size), (1.0 - t, t)
+
+
+def merge_hypotheses(
+    ids_a: Annotated[np.ndarray, "(V, K) int32 track id, -1 = empty"],
+    w_a: Annotated[np.ndarray, "(V, K) float"],
+    ids_b: Annotated[np.ndarray, "(V, K) int32 track id, -1 = empty"],
+    w_b: Annotated[np.ndarray, "(V, K) float"],
+    k: int,
+) -> tuple[Annotated[np.ndarray, "(V, k) int32"], Annotated[np.ndarray, "(V, k) float32"]]:
+    """Per row, the union of two hypothesis sets (each track at most once per set), weights of a
+    track in both added, entries of zero weight dropped, the ``k`` heaviest kept in descending
+    weight (ties: the first set's slots, in slot order, then the second's)."""
+    ids_a = np.where(w_a > 0, ids_a, -1)
+    ids_b = np.where(w_b > 0, ids_b, -1)
+    w_a = np.where(ids_a >= 0, w_a, 0.0).astype(np.float64)
+    w_b = np.where(ids_b >= 0, w_b, 0.0).astype(np.float64)
+    same = (ids_b[:, :, None] == ids_a[:, None, :]) & (ids_b[:, :, None] >= 0)  # (V, Kb, Ka)
+    w_a = w_a + np.einsum("vba,vb->va", same, w_b)
+    ids_b = np.where(same.any(axis=2), -1, ids_b)
+    ids = np.concatenate([ids_a, ids_b], axis=1)
+    w = np.concatenate([w_a, np.where(ids_b >= 0, w_b, 0.0)], axis=1)
+    order = np.argsort(np.where(ids >= 0, -w, np.inf), axis=1, kind="stable")[:, :k]
+    ids = np.take_along_axis(ids, order, axis=1).astype(np.int32)
+    w = np.take_along_axis(w, order, axis=1)
+    if ids.shape[1] < k:
+        pad = k - ids.shape[1]
+        ids = np.pad(ids, ((0, 0), (0, pad)), constant_values=-1)
+        w = np.pad(w, ((0, 0), (0, pad)))
+    return ids, np.where(ids >= 0, w, 0.0).astype(np.float32)
 
 
 def _o3c() -> Any:
     from shared.o3d import import_open3d
 
     return import_open3d().core
+

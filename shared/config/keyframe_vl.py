@@ -18,8 +18,15 @@ class SimulatedSegmenterNoise(StrictModel):
     """Chance a mask is split in two along its principal axis."""
     merge_prob: float = Field(0.03, ge=0, le=1)
     """Chance a mask is merged with a touching neighbour."""
-    miss_below_px: int = Field(150, ge=0)
-    """Masks smaller than this many pixels are dropped, as FastSAM misses small objects."""
+    miss_below_frac: float = Field(150 / (640 * 480), ge=0, le=1)
+    """Objects covering less than this share of the image are dropped, as FastSAM misses small
+    objects. A share, not a pixel count, because FastSAM resizes every image to its own input
+    size (1024 on the long side) before it detects anything, so what it misses depends on the
+    object's size relative to the frame. The default is 150 pixels at 640x480 (about a
+    12 x 12 pixel object), 38 at the 320x240 presets."""
+    miss_below_px: int | None = Field(None, ge=0)
+    """An absolute threshold in pixels instead of ``miss_below_frac``, when set (0 misses
+    nothing)."""
     spurious_per_frame: float = Field(0.5, ge=0)
     """Mean number of spurious blob masks added per keyframe."""
 

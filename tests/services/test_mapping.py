@@ -7,6 +7,7 @@ tracks retired when their object leaves the view) isolate fusion from tracking e
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,6 +21,8 @@ from shared.datasets import open_sequence
 from shared.eval import eval_instances
 
 pytestmark = pytest.mark.slow
+
+ROOT = Path(__file__).resolve().parents[2]
 
 GT_TRACKS = {"keyframe_vl": {"vl": {"backend": "simulated"}}, "tracker": {"mode": "ground_truth"}}
 
@@ -65,6 +68,21 @@ def test_ground_truth_tracks_give_ap50_090_on_small(small, tmp_path, capsys):
     scores = eval_instances(out, small)
     assert scores["ap50"] >= 0.9, scores
     assert scores["segments_per_object"] <= 1.1
+
+
+def test_tracker_at_default_noise_gives_ap50_070_on_small(small, tmp_path):
+    """The whole mapping half on noisy perception: the simulated segmenter at default noise,
+    the tracker propagating with classical features (``deploy/configs/synthetic.yaml``)."""
+    from services.mapping import run_map
+    from shared.config import load_config
+
+    cfg = load_config(ROOT / "deploy" / "configs" / "synthetic.yaml")
+    out = tmp_path / "map"
+    run_map(small, cfg, out, progress=False)
+    scores = eval_instances(out, small)
+    assert scores["ap50"] >= 0.7, scores
+    assert scores["ap25"] >= scores["ap50"] >= scores["ap"]
+    assert scores["segments_per_object"] <= 1.2, scores
 
 
 def test_reidentification_removes_revisit_duplicates(revisit, tmp_path):

@@ -149,7 +149,8 @@ class SimulatedSegmenter:
         rng = _rng(self.cfg.seed, image.frame_index)
 
         ids, areas = np.unique(gt[gt >= 0], return_counts=True)
-        seen = [int(i) for i, a in zip(ids, areas, strict=True) if a >= noise.miss_below_px]
+        miss_below = noise.miss_below_px if noise.miss_below_px is not None else noise.miss_below_frac * h * w
+        seen = [int(i) for i, a in zip(ids, areas, strict=True) if a >= miss_below]
         touching = _touching_pairs(gt) if noise.merge_prob > 0 else set()
         groups = _merge_groups(seen, touching, noise.merge_prob, rng)
 

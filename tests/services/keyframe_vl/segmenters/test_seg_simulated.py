@@ -69,6 +69,10 @@ def test_each_noise_kind_acts(room):
     assert len(run(merge_prob=1.0)) < n_gt
     small = int(np.unique(room.instances, return_counts=True)[1].min())
     assert len(run(miss_below_px=small + 1)) < n_gt
+    # The share of the image, unless an absolute threshold is set.
+    assert len(run(miss_below_px=None, miss_below_frac=(small + 1) / room.instances.size)) < n_gt
+    assert len(run(miss_below_px=None, miss_below_frac=(small - 0.5) / room.instances.size)) == n_gt
+    assert len(run(miss_below_px=0, miss_below_frac=1.0)) == n_gt
     assert len(run(spurious_per_frame=20.0)) > n_gt
     jittered = run(boundary_jitter_px=2.0)
     assert len(jittered) == n_gt
