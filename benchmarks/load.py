@@ -29,7 +29,6 @@ import json
 import math
 import platform
 import re
-import socket
 import subprocess
 import sys
 import tempfile
@@ -43,18 +42,13 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from services.bench.rate import free_port, last_stats  # noqa: E402
 from services.launch import Supervisor, plan_launch  # noqa: E402
 from shared.procfs import status_mb  # noqa: E402
 
 DEFAULT_OUT = ROOT / "benchmarks" / "out" / "load.json"
 SYNTHETIC = ROOT / "deploy" / "configs" / "synthetic.yaml"
 SAMPLE_S = 5.0
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def rss_mb(pid: int | None) -> float | None:
@@ -67,20 +61,6 @@ def make_sequence(path: Path, frames: int) -> Path:
     if not (path / "traj.txt").exists():
         run_synth("small", 0, path, {"camera": {"width": 640, "height": 480, "frames": frames}}, overwrite=True, progress=False)
     return path
-
-
-def last_stats(log: Path, pattern: str) -> dict | None:
-    """The dict a service logs when it stops (``... stopped: {...}``)."""
-    import ast
-
-    found = None
-    for line in log.read_text(errors="replace").splitlines():
-        if pattern in line and "{" in line:
-            try:
-                found = ast.literal_eval(line[line.index("{"):])
-            except (ValueError, SyntaxError):
-                continue
-    return found
 
 
 def run_load(seq: Path, work: Path, *, minutes: float, rate_hz: float, warmup: float = 0.2, progress: bool = True) -> dict:

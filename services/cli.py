@@ -372,6 +372,30 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_run(args: argparse.Namespace) -> int:
+    from services.bench.core import run_bench
+    from services.bench.runs import BenchError
+
+    if (args.preset is None) == (args.sequence is None):
+        raise CommandError("give either --preset small|demo|revisit or --sequence SEQ_DIR --gt GT_DIR")
+    if args.sequence is not None and not args.config:
+        raise CommandError("--sequence needs at least one --config FILE (simulated perception works on synthetic scenes only)")
+    try:
+        res = run_bench(
+            args.out, preset=args.preset, seed=args.seed, sequence=args.sequence, gt=args.gt, configs=args.config or [],
+            dataset=args.dataset, max_frames=args.max_frames, rate_trials=args.rate_trials, rate_frames=args.rate_frames,
+            progress=not args.json,
+        )  # fmt: skip
+    except BenchError as exc:
+        raise CommandError(str(exc)) from None
+    if args.json:
+        print(json.dumps({"out": str(args.out), "markdown": str(Path(args.out) / "bench.md"), "json": str(Path(args.out) / "bench.json"), "plots": res["plots"], "seconds": res["seconds"]}))
+    else:
+        print((Path(args.out) / "bench.md").read_text())
+        print(f"tables: {Path(args.out) / 'bench.md'}, JSON: {Path(args.out) / 'bench.json'}, plots: {Path(args.out) / 'plots'}")
+    return 0
+
+
 def _cmd_launch(args: argparse.Namespace) -> int:
     from services.launch import LaunchError, run_launch
 
@@ -508,6 +532,22 @@ def build_parser() -> argparse.ArgumentParser:
     dm.add_argument("--config", type=Path, metavar="FILE", help="default: the paper's models if their weights are present, else simulated perception")
     dm.add_argument("--json", action="store_true", help="print the report's figures as JSON")
     dm.set_defaults(func=_cmd_demo)
+
+    be = sub.add_parser("bench", help="the paper's tables for one sequence and one or more configs")
+    besub = be.add_subparsers(dest="bench_cmd", required=True)
+    br = besub.add_parser("run", help="segmentation, retrieval, efficiency, tracker and gallery ablations: markdown, JSON and plots")
+    br.add_argument("--preset", choices=["small", "demo", "revisit"], help="a synthetic scene (generated into OUT)")
+    br.add_argument("--seed", type=int, default=0, help="seed of the synthetic scene")
+    br.add_argument("--sequence", type=Path, metavar="SEQ_DIR", help="a recorded sequence instead of a preset")
+    br.add_argument("--gt", type=Path, metavar="GT_DIR", help="its OpenLex3D ground truth (with --sequence)")
+    br.add_argument("--dataset", choices=["replica", "scannetpp", "hm3d", "tum", "rosbag"])
+    br.add_argument("--config", type=Path, action="append", metavar="FILE", help="a system config (repeatable; default deploy/configs/synthetic.yaml)")
+    br.add_argument("--out", type=Path, default=Path("bench_out"), metavar="DIR")
+    br.add_argument("--max-frames", type=int, metavar="N", help="map only the first N frames")
+    br.add_argument("--rate-trials", type=int, default=3, metavar="N", help="live runs per tracker mode in the input-rate search (0 skips it)")
+    br.add_argument("--rate-frames", type=int, default=60, metavar="N", help="frames per live run")
+    br.add_argument("--json", action="store_true", help='print {"out", "markdown", "json", "plots", "seconds"}')
+    br.set_defaults(func=_cmd_bench_run)
 
     la = sub.add_parser("launch", help="start a router and every service of a launch file as separate processes")
     la.add_argument("file", type=Path, metavar="LAUNCH_FILE", help="e.g. deploy/local.yaml")

@@ -45,7 +45,11 @@ class TrackerNode:
         self.features = TypedPublisher(self.session, self.topics.tracks_features, TrackFeatures, robot_id=rid, codec=codec)
         self.ends = TypedPublisher(self.session, self.topics.tracks_end, EndOfSequence, robot_id=rid, codec=codec)
         self.acks = TypedPublisher(self.session, self.topics.frame_ack, FrameAck, robot_id=rid, codec=codec)
-        self._inbox: queue.Queue = queue.Queue(maxsize=64)
+        live = cfg.source.mode == "live"
+        # Live, a frame waits behind at most one other here and the subscriber's newest-two
+        # ring drops the rest, counted: a deeper queue would let the tracker fall seconds
+        # behind a live camera before it dropped anything.
+        self._inbox: queue.Queue = queue.Queue(maxsize=1 if live else 64)
         self._masks: dict[int, KeyframeMasks] = {}
         self._features: list[MaskFeatures] = []
         self._cv = threading.Condition()
@@ -62,7 +66,6 @@ class TrackerNode:
         self.errors = 0
         self._worker = threading.Thread(target=self._run, name="tracker:worker", daemon=True)
         self._worker.start()
-        live = cfg.source.mode == "live"
         self.subs = [
             # Lossless: the source is paced to source.window_frames ahead; room for more.
             TypedSubscriber(self.session, self.topics.frames, Frame, codec=codec, policy="latest" if live else "fifo",

@@ -75,4 +75,5 @@ def test_ultralytics_import_leaves_the_process_alone():
         [sys.executable, "-c", "import torch; print(torch.get_num_threads())"],
         capture_output=True, text=True, timeout=120, env=env,
     )
-    assert out.stdout.split() == ["True", plain.stdout.strip()]
+    # The first ultralytics import on a machine also prints that it created its settings file.
+    assert out.stdout.strip().splitlines()[-1].split() == ["True", plain.stdout.strip().splitlines()[-1]]

@@ -1,0 +1,160 @@
+"""The highest input rate the distributed system sustains without dropping a frame.
+
+A trial starts the router, keyframe_vl, tracker and fusion as separate processes on loopback
+Zenoh (``trackgraph launch``'s Supervisor), then the source in ``live`` mode at the trial's
+rate. A live source never waits for a slow stage, so a stage that cannot keep up drops frames,
+and each drop is counted where it happens: the source (frames it was too late to send), the
+tracker (frames its newest-only input replaced) and fusion (tracked frames its bounded queue
+had no room for). A rate is sustained when no stage dropped a frame, every frame published
+reached the map, and the map kept pace: its frames were fused, first to last, at 90% of the
+source's rate or more. The last condition matters because buffers hide a slow stage for a
+while; the tracker keeps at most a few live frames, but fusion queues every tracked frame
+rather than lose it.
+
+The search doubles the rate after a sustained trial and halves it after a failed one until it
+has bracketed the limit, then bisects; the answer is the highest sustained rate tried.
+"""
+
+from __future__ import annotations
+
+import ast
+import json
+import logging
+import re
+import socket
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+log = logging.getLogger(__name__)
+
+SOURCE_LINE = re.compile(r"published (\d+) frames in ([\d.]+) s \(([\d.]+) Hz\), dropped (\d+)")
+PACE_SHARE = 0.9
+"""A sustained rate: the map took in frames (first to last fused) at least this share of the
+source's rate, besides dropping none."""
+STARTUP_ALLOWANCE_S = 180.0
+"""A trial is stopped when it runs this much longer than its frames take at its rate."""
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def last_stats(log_file: Path, pattern: str) -> dict | None:
+    """The dict a service logs when it stops (``<service> stopped: {...}``), the last one."""
+    if not log_file.exists():
+        return None
+    found = None
+    for line in log_file.read_text(errors="replace").splitlines():
+        if pattern in line and "{" in line:
+            try:
+                found = ast.literal_eval(line[line.index("{") :])
+            except (ValueError, SyntaxError):
+                continue
+    return found
+
+
+def live_trial(sequence: Path, config: Path, work: Path, rate_hz: float, frames: int | None) -> dict[str, Any]:
+    """One run of the live system at ``rate_hz`` over the first ``frames`` frames."""
+    from services.launch import Supervisor, plan_launch
+
+    work.mkdir(parents=True, exist_ok=True)
+    port = free_port()
+    source: dict[str, Any] = {"mode": "live", "rate_hz": float(rate_hz)}
+    if frames:
+        source["max_frames"] = int(frames)
+    doc = {
+        "config": str(config),
+        # Shared memory has dropped messages under load in some Zenoh versions: a drop here
+        # must be the system's, not the transport's.
+        "overrides": {"source": source, "transport": {"shared_memory": False}},
+        "connect": [f"tcp/127.0.0.1:{port}"],
+        "listen": [f"tcp/127.0.0.1:{port}"],
+        "services": [
+            {"name": "router"},
+            {"name": "keyframe_vl"},
+            {"name": "fusion", "args": ["--exit-at-end"]},
+            {"name": "tracker", "after": ["keyframe_vl"]},
+            {"name": "source", "after": ["tracker", "fusion"]},
+        ],
+        "restart": {"max_restarts": 0},
+        "exit_when_finished": True,
+    }
+    path = work / "launch.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    out = work / "map"
+    plan = plan_launch(path, sequence=sequence, out=out)
+    sup = Supervisor(plan, status=False)
+    t0 = time.monotonic()
+    runner = threading.Thread(target=sup.run, daemon=True)
+    runner.start()
+    budget = (frames or 10_000) / rate_hz + STARTUP_ALLOWANCE_S
+    runner.join(timeout=budget)
+    timed_out = runner.is_alive()
+    if timed_out:
+        log.warning("trial at %.1f Hz still running after %.0f s; stopping it", rate_hz, budget)
+        sup.stop_event.set()
+        runner.join()
+    logs = plan.log_dir
+    src = SOURCE_LINE.findall((logs / "source.log").read_text(errors="replace")) if (logs / "source.log").exists() else []
+    tracker = last_stats(logs / "tracker.log", "tracker stopped") or {}
+    fusion = last_stats(logs / "fusion.log", "fusion stopped") or {}
+    run = json.loads((out / "run.json").read_text()) if (out / "run.json").exists() else {}
+    published = int(src[-1][0]) if src else None
+    drops = {
+        "source": int(src[-1][3]) if src else None,
+        "tracker": tracker.get("frames_in", {}).get("dropped"),
+        "fusion": fusion.get("input_dropped"),
+    }
+    known = [v for v in drops.values() if v is not None]
+    dropped = sum(known) if len(known) == len(drops) else None
+    in_map = run.get("frames_in_map")
+    # Frames no stage counted as dropped but that never reached the map (lost in transit,
+    # or published before a subscriber was ready) count against the rate too.
+    lost = None if published is None or in_map is None or dropped is None else max(published - dropped - int(in_map), 0)
+    # Buffers hide a slow stage for a while: the map must also have kept the source's pace.
+    fused_s = run.get("fused_seconds")
+    pace = (int(in_map) - 1) / fused_s if in_map and fused_s else None
+    kept_pace = pace is not None and pace >= PACE_SHARE * rate_hz
+    ok = not timed_out and sup.error is None and bool(published) and dropped == 0 and lost == 0 and kept_pace
+    return {
+        "rate_hz": round(float(rate_hz), 2),
+        "published": published,
+        "dropped": dropped,
+        "drops": drops,
+        "frames_in_map": in_map,
+        "lost": lost,
+        "fused_hz": None if pace is None else round(pace, 2),
+        "sustained": bool(ok),
+        "error": sup.error or ("timed out" if timed_out else None),
+        "seconds": round(time.monotonic() - t0, 1),
+    }
+
+
+def search_rate(trial: Callable[[float], dict[str, Any]], start_hz: float, trials: int) -> tuple[float | None, list[dict[str, Any]]]:
+    """The highest sustained rate found in ``trials`` trials, starting at ``start_hz``."""
+    lo: float | None = None  # highest sustained
+    hi: float | None = None  # lowest failed
+    rate = max(float(start_hz), 0.1)
+    done: list[dict[str, Any]] = []
+    for _ in range(max(trials, 1)):
+        res = trial(round(rate, 2))
+        done.append(res)
+        if res["sustained"]:
+            lo = rate if lo is None else max(lo, rate)
+        else:
+            hi = rate if hi is None else min(hi, rate)
+        if lo is not None and hi is not None:
+            rate = (lo + hi) / 2
+        elif lo is not None:
+            rate = lo * 2
+        else:
+            rate = hi / 2  # type: ignore[operator]
+    best = max((r["rate_hz"] for r in done if r["sustained"]), default=None)
+    return best, done

@@ -1,0 +1,148 @@
+"""``trackgraph bench run``: the rate search, the variants, the report, and one small run end to
+end through the command line."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from services.bench.rate import last_stats, search_rate
+from services.bench.report import markdown, plots
+from services.bench.runs import REPO, write_variant
+from shared.config import load_config
+
+
+def fake_trial(limit: float):
+    calls: list[float] = []
+
+    def trial(rate: float) -> dict:
+        calls.append(rate)
+        ok = rate <= limit
+        return {"rate_hz": rate, "published": 60, "dropped": 0 if ok else 7, "sustained": ok,
+                "drops": {"source": 0, "tracker": 0 if ok else 7, "fusion": 0}}  # fmt: skip
+
+    return trial, calls
+
+
+@pytest.mark.parametrize("limit, start", [(3.0, 2.0), (3.0, 5.0), (0.05, 1.0), (100.0, 1.0)])
+def test_search_brackets_then_bisects(limit, start):
+    trial, calls = fake_trial(limit)
+    best, done = search_rate(trial, start, 5)
+    assert len(done) == len(calls) == 5
+    sustained = [r for r in calls if r <= limit]
+    assert best == (max(sustained) if sustained else None)
+    assert best is None or best <= limit
+    if limit == 3.0:
+        # five trials from either side get within 25% of the limit
+        assert best is not None and best >= 0.75 * limit
+    # after a pass the next rate is higher, after a failure lower
+    for a, b in zip(calls, calls[1:], strict=False):
+        assert (b > a) if a <= limit else (b < a)
+
+
+def test_search_with_one_trial():
+    trial, calls = fake_trial(3.0)
+    assert search_rate(trial, 2.0, 1)[0] == 2.0
+    assert search_rate(trial, 4.0, 1)[0] is None
+
+
+def test_last_stats_reads_the_last_dict(tmp_path):
+    log = tmp_path / "tracker.log"
+    log.write_text(
+        "12:00 INFO tracker stopped: {'frames': 3, 'frames_in': {'dropped': 1}}\n"
+        "12:01 INFO something else {not a dict\n"
+        "12:02 INFO tracker stopped: {'frames': 9, 'frames_in': {'dropped': 4}}\n"
+    )
+    assert last_stats(log, "tracker stopped") == {"frames": 9, "frames_in": {"dropped": 4}}
+    assert last_stats(tmp_path / "missing.log", "tracker stopped") is None
+
+
+def test_variant_is_validated_and_complete(tmp_path):
+    base = REPO / "deploy" / "configs" / "synthetic.yaml"
+    path = write_variant(base, {"fusion": {"tsdf": {"voxel_size": 0.05}}, "tracker": {"mode": "per_frame"}}, tmp_path / "v.yaml")
+    cfg = load_config(path)
+    assert cfg.fusion.tsdf.voxel_size == 0.05 and cfg.tracker.mode == "per_frame"
+    assert cfg.fusion.segments.theta_sim == load_config(base).fusion.segments.theta_sim
+    from shared.config import ConfigError
+
+    with pytest.raises(ConfigError, match="voxel_sise"):
+        write_variant(base, {"fusion": {"tsdf": {"voxel_sise": 0.05}}}, tmp_path / "bad.yaml")
+
+
+def _result() -> dict:
+    def ev(x: float) -> dict:
+        return {"synonyms": 0.5 + x, "depictions": 0.05, "vis_sim": 0.1, "clutter": 0.05, "missing": 0.2 - x, "incorrect": 0.1,
+                "ap": 0.3, "ap50": 0.5 + x, "ap25": 0.7, "top1_hit_rate": 0.8,
+                "instances": {"ap": 0.4, "ap50": 0.7, "ap25": 0.8, "segments_per_object": 1.05},
+                "gallery": {"max": 0.86, "mean": 0.74}}  # fmt: skip
+
+    def run(hz: float, secs: float, mb: float) -> dict:
+        return {"frames": 120, "seconds": secs, "hz": hz, "peak_rss_mb": mb, "gpu_peak_mb": None}
+
+    trials = [
+        {"rate_hz": 3.0, "published": 60, "dropped": 0, "sustained": True, "drops": {"source": 0, "tracker": 0, "fusion": 0}},
+        {"rate_hz": 6.0, "published": 60, "dropped": 12, "sustained": False, "drops": {"source": 0, "tracker": 12, "fusion": 0}},
+    ]
+    cfg = {
+        "name": "synthetic", "path": "deploy/configs/synthetic.yaml",
+        "backends": {"segmenter": "simulated", "vl_encoder": "simulated", "dense_features": "classical"},
+        "runs": {"3cm": {"run": run(6.4, 18.6, 1400), "eval": ev(0.1)}, "5cm": {"run": run(7.9, 15.2, 900), "eval": ev(0.05)},
+                 "per_frame": {"run": run(3.1, 38.0, 1500), "eval": ev(0.0)}},
+        "rate": {"3cm": {"max_sustained_hz": 3.0, "trials": trials}, "per_frame": {"max_sustained_hz": 1.5, "trials": trials[:1]}},
+    }  # fmt: skip
+    return {"sequence_name": "small preset, seed 0", "commit": "abc1234", "when": "2026-12-02T15:00:00+00:00",
+            "machine": {"cpu": "Test CPU", "cpus": 2, "gpu": None, "platform": "Linux", "python": "3.11"}, "configs": [cfg]}  # fmt: skip
+
+
+def test_markdown_has_every_table_and_the_ratio():
+    md = markdown(_result())
+    for title in ("## Segmentation", "## Retrieval", "## Efficiency", "## Tracker ablation", "## Gallery ablation"):
+        assert title in md
+    assert "| synthetic | 0.600 | 0.050 | 0.100 | 0.050 | 0.100 | 0.100 |" in md
+    assert "| synthetic | 5 cm | 120 | 0.25 min | 7.90 | 0.88 GB | n/a |" in md
+    assert "propagation sustains 2.00x the input rate of per-frame segmentation" in md
+    assert "Simulated perception" in md and "abc1234" in md and "Test CPU (2 cores), no GPU" in md
+    assert "| synthetic | 0.860 | 0.740 |" in md
+
+
+def test_plots_are_written(tmp_path):
+    paths = plots(_result(), tmp_path)
+    assert sorted(p.name for p in paths) == ["efficiency.png", "gallery.png", "retrieval.png", "segmentation.png", "tracker.png"]
+    for p in paths:
+        assert p.stat().st_size > 10_000 and p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_bench_needs_a_scene(capsys):
+    from services.cli import main
+
+    assert main(["bench", "run"]) == 2
+    assert "--preset" in capsys.readouterr().err
+    assert main(["bench", "run", "--sequence", "nowhere"]) == 2
+    assert "--config" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+@pytest.mark.zenoh
+def test_bench_run_end_to_end(tmp_path, capsys):
+    """A short run of the real thing: the small preset cut to 24 frames, one live trial per
+    tracker mode."""
+    from services.cli import main
+
+    out = tmp_path / "bench"
+    args = ["bench", "run", "--preset", "small", "--out", str(out), "--max-frames", "24", "--rate-trials", "1", "--rate-frames", "16", "--json"]
+    assert main(args) == 0
+    printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert {"out", "markdown", "json", "plots", "seconds"} <= set(printed)
+    res = json.loads((out / "bench.json").read_text())
+    (cfg,) = res["configs"]
+    assert set(cfg["runs"]) == {"3cm", "5cm", "per_frame"}
+    assert cfg["runs"]["3cm"]["run"]["frames"] == 24 and cfg["runs"]["per_frame"]["run"]["frames"] == 24
+    assert 0.0 <= cfg["runs"]["3cm"]["eval"]["ap50"] <= 1.0
+    assert cfg["backends"]["segmenter"] == "simulated" and res["machine"]["cpus"] >= 1
+    for mode in ("3cm", "per_frame"):
+        (trial,) = cfg["rate"][mode]["trials"]
+        assert trial["published"] == 16 and trial["dropped"] is not None, trial
+    md = (out / "bench.md").read_text()
+    assert "## Tracker ablation" in md and "Simulated perception" in md
+    assert len(list((out / "plots").glob("*.png"))) == 5
