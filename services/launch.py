@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from shared.config.base import ConfigError, save_resolved, validate
+from shared.config.base import ConfigError, deep_merge, save_resolved, validate
 from shared.config.launch import LaunchConfig, RestartPolicy, ServiceSpec, load_launch
 from shared.config.root import TrackGraphConfig
 from shared.procfs import status_mb
@@ -42,13 +42,6 @@ REPORT_GONE_S = 3.0
 
 class LaunchError(RuntimeError):
     """The launch could not start, or a service failed beyond its restart policy."""
-
-
-def _deep_merge(base: dict, over: dict) -> dict:
-    out = dict(base)
-    for k, v in over.items():
-        out[k] = _deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
 
 
 @dataclass
@@ -97,7 +90,7 @@ def plan_launch(
         if zc is not None and not rel(zc).is_file():
             raise ConfigError(f"{path}: zenoh config {rel(zc)} does not exist")
     base = load_config(Path(config) if config is not None else rel(launch.config))
-    data = _deep_merge(base.model_dump(mode="json"), launch.overrides)
+    data = deep_merge(base.model_dump(mode="json"), launch.overrides)
     data["transport"] = {**data["transport"], "mode": "client", "connect": list(launch.connect), "listen": []}
     if launch.zenoh_config is not None:
         data["transport"]["zenoh_config_file"] = str(rel(launch.zenoh_config))

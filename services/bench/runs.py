@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from shared.config import TrackGraphConfig, load_config
-from shared.config.base import save_resolved, validate
+from shared.config.base import deep_merge, save_resolved, validate
 
 log = logging.getLogger(__name__)
 
@@ -25,13 +25,6 @@ REPO = Path(__file__).resolve().parents[2]
 
 class BenchError(RuntimeError):
     """A bench step failed; the message names the step and the reason."""
-
-
-def deep_merge(base: dict, over: dict) -> dict:
-    out = dict(base)
-    for k, v in over.items():
-        out[k] = deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
 
 
 def write_variant(config: Path, overrides: dict, path: Path) -> Path:

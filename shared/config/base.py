@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import difflib
 from pathlib import Path
 from typing import TypeVar
@@ -100,3 +101,14 @@ def save_resolved(model: BaseModel, path: str | Path) -> Path:
     from shared.io import atomic_write_text
 
     return atomic_write_text(Path(path), dump_yaml(model))
+
+
+def deep_merge(base: dict, over: dict) -> dict:
+    """``base`` with ``over`` laid on top, nested dicts merged key by key; both left as they were."""
+    out = copy.deepcopy(base)
+    for key, value in over.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = deep_merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out

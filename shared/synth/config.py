@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import copy
 import math
 from typing import Literal
 
 from pydantic import Field, model_validator
 
-from shared.config.base import ConfigError, StrictModel, validate
+from shared.config.base import ConfigError, StrictModel, deep_merge, validate
 
 RoomKind = Literal["living", "bedroom", "office", "dining"]
 
@@ -209,16 +208,6 @@ PRESETS: dict[str, dict] = {
 """Named starting points; ``preset_config`` layers user overrides on top."""
 
 
-def _deep_merge(base: dict, over: dict) -> dict:
-    out = copy.deepcopy(base)
-    for key, value in over.items():
-        if isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = _deep_merge(out[key], value)
-        else:
-            out[key] = copy.deepcopy(value)
-    return out
-
-
 def preset_config(preset: str, overrides: dict | None = None) -> SynthConfig:
     """The named preset with ``overrides`` (nested, e.g. ``{"camera": {"frames": 30}}``) applied.
 
@@ -226,6 +215,6 @@ def preset_config(preset: str, overrides: dict | None = None) -> SynthConfig:
     """
     if preset not in PRESETS:
         raise ConfigError(f"unknown synth preset {preset!r}; choose one of {', '.join(sorted(PRESETS))}")
-    data = _deep_merge(PRESETS[preset], overrides or {})
+    data = deep_merge(PRESETS[preset], overrides or {})
     source = f"synth preset {preset!r}" + (" with overrides" if overrides else "")
     return validate(SynthConfig, data, source)
