@@ -28,22 +28,17 @@ import datetime as dt
 import json
 import math
 import platform
-import re
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
-
-import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from services.bench.rate import free_port, last_stats  # noqa: E402
-from services.launch import Supervisor, plan_launch  # noqa: E402
+from services.bench.rate import SOURCE_LINE, last_stats, start_live_system  # noqa: E402
 from shared.procfs import status_mb  # noqa: E402
 
 DEFAULT_OUT = ROOT / "benchmarks" / "out" / "load.json"
@@ -69,33 +64,17 @@ def run_load(seq: Path, work: Path, *, minutes: float, rate_hz: float, warmup: f
 
     n = len(open_sequence(seq))
     loops = max(1, math.ceil(minutes * 60 * rate_hz / n))
-    port = free_port()
-    doc = {
-        "config": str(SYNTHETIC),
-        "overrides": {
-            "source": {"mode": "live", "rate_hz": rate_hz, "loops": loops},
-            "transport": {"shared_memory": False},
-            "tracker": {"device": "cpu"},
-        },
-        "connect": [f"tcp/127.0.0.1:{port}"],
-        "listen": [f"tcp/127.0.0.1:{port}"],
-        "services": [
-            {"name": "router"},
-            {"name": "keyframe_vl"},
-            {"name": "fusion", "args": ["--exit-at-end"]},
-            {"name": "query"},
-            {"name": "tracker", "after": ["keyframe_vl"]},
-            {"name": "source", "after": ["tracker", "fusion", "query"]},
-        ],
-        "exit_when_finished": True,
-    }
-    path = work / "launch.yaml"
-    path.write_text(yaml.safe_dump(doc))
-    out = work / "map"
-    plan = plan_launch(path, sequence=seq, out=out)
-    sup = Supervisor(plan, status=False)
-    runner = threading.Thread(target=sup.run, daemon=True)
-    runner.start()
+    overrides = {"source": {"mode": "live", "rate_hz": rate_hz, "loops": loops}, "tracker": {"device": "cpu"}}
+    services = [
+        {"name": "router"},
+        {"name": "keyframe_vl"},
+        {"name": "fusion", "args": ["--exit-at-end"]},
+        {"name": "query"},
+        {"name": "tracker", "after": ["keyframe_vl"]},
+        {"name": "source", "after": ["tracker", "fusion", "query"]},
+    ]
+    plan, sup, runner = start_live_system(SYNTHETIC, seq, work, overrides, services)
+    out = plan.out
     samples: dict[str, list[tuple[float, float]]] = {name: [] for name in sup.procs}
     t_source = None
     bar = None
@@ -138,7 +117,7 @@ def run_load(seq: Path, work: Path, *, minutes: float, rate_hz: float, warmup: f
         }
 
     logs = plan.log_dir
-    source_line = re.findall(r"published (\d+) frames in ([\d.]+) s \(([\d.]+) Hz\), dropped (\d+)", (logs / "source.log").read_text())
+    source_line = SOURCE_LINE.findall((logs / "source.log").read_text())
     tracker = last_stats(logs / "tracker.log", "tracker stopped") or {}
     fusion_run = json.loads((out / "run.json").read_text()) if (out / "run.json").exists() else {}
     fusion_stats = last_stats(logs / "fusion.log", "fusion stopped") or {}

@@ -166,7 +166,6 @@ def run_bench(
     }
     for entry in results:
         entry["commit"], entry["machine"] = res["commit"], res["machine"]
-    atomic_write_text(out / "bench.json", json.dumps(res, indent=2))
     atomic_write_text(out / "bench.md", markdown(res))
     res["plots"] = [str(p) for p in plots(res, out / "plots")]
     atomic_write_text(out / "bench.json", json.dumps(res, indent=2))

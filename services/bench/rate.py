@@ -60,40 +60,52 @@ def last_stats(log_file: Path, pattern: str) -> dict | None:
     return found
 
 
-def live_trial(sequence: Path, config: Path, work: Path, rate_hz: float, frames: int | None) -> dict[str, Any]:
-    """One run of the live system at ``rate_hz`` over the first ``frames`` frames."""
+def start_live_system(
+    config: Path, sequence: Path, work: Path, overrides: dict, services: list[dict], **launch: Any
+) -> tuple[Any, Any, threading.Thread]:
+    """A launch file in ``work`` for ``services`` over ``config`` with ``overrides``, on a free
+    loopback port, planned (map in ``work/map``) and supervised in a background thread:
+    (plan, supervisor, thread). Extra launch-file keys go in ``launch``."""
     from services.launch import Supervisor, plan_launch
+    from shared.config.base import deep_merge
 
     work.mkdir(parents=True, exist_ok=True)
     port = free_port()
-    source: dict[str, Any] = {"mode": "live", "rate_hz": float(rate_hz)}
-    if frames:
-        source["max_frames"] = int(frames)
     doc = {
         "config": str(config),
         # Shared memory has dropped messages under load in some Zenoh versions: a drop here
         # must be the system's, not the transport's.
-        "overrides": {"source": source, "transport": {"shared_memory": False}},
+        "overrides": deep_merge({"transport": {"shared_memory": False}}, overrides),
         "connect": [f"tcp/127.0.0.1:{port}"],
         "listen": [f"tcp/127.0.0.1:{port}"],
-        "services": [
-            {"name": "router"},
-            {"name": "keyframe_vl"},
-            {"name": "fusion", "args": ["--exit-at-end"]},
-            {"name": "tracker", "after": ["keyframe_vl"]},
-            {"name": "source", "after": ["tracker", "fusion"]},
-        ],
-        "restart": {"max_restarts": 0},
+        "services": services,
         "exit_when_finished": True,
+        **launch,
     }
     path = work / "launch.yaml"
     path.write_text(yaml.safe_dump(doc))
-    out = work / "map"
-    plan = plan_launch(path, sequence=sequence, out=out)
+    plan = plan_launch(path, sequence=sequence, out=work / "map")
     sup = Supervisor(plan, status=False)
-    t0 = time.monotonic()
     runner = threading.Thread(target=sup.run, daemon=True)
     runner.start()
+    return plan, sup, runner
+
+
+def live_trial(sequence: Path, config: Path, work: Path, rate_hz: float, frames: int | None) -> dict[str, Any]:
+    """One run of the live system at ``rate_hz`` over the first ``frames`` frames."""
+    source: dict[str, Any] = {"mode": "live", "rate_hz": float(rate_hz)}
+    if frames:
+        source["max_frames"] = int(frames)
+    services = [
+        {"name": "router"},
+        {"name": "keyframe_vl"},
+        {"name": "fusion", "args": ["--exit-at-end"]},
+        {"name": "tracker", "after": ["keyframe_vl"]},
+        {"name": "source", "after": ["tracker", "fusion"]},
+    ]
+    t0 = time.monotonic()
+    plan, sup, runner = start_live_system(config, sequence, work, {"source": source}, services, restart={"max_restarts": 0})
+    out = plan.out
     budget = (frames or 10_000) / rate_hz + STARTUP_ALLOWANCE_S
     runner.join(timeout=budget)
     timed_out = runner.is_alive()

@@ -131,7 +131,16 @@ def plots(res: dict[str, Any], folder: Path) -> list[Path]:
     folder.mkdir(parents=True, exist_ok=True)
     configs = res["configs"]
     names = [c["name"] for c in configs]
+    x = np.arange(len(configs))
     written = []
+
+    def bars(ax, groups: list[tuple[str, list[float]]], width: float) -> None:
+        """One bar per config for each (label, values) group, side by side, values printed."""
+        for i, (label, vals) in enumerate(groups):
+            drawn = ax.bar(x + (i - (len(groups) - 1) / 2) * width, vals, width, label=label)
+            ax.bar_label(drawn, fmt="%.2f", fontsize=8)
+        ax.set_xticks(x, names)
+        ax.legend()
 
     def save(fig, name: str) -> None:
         path = folder / name
@@ -159,32 +168,21 @@ def plots(res: dict[str, Any], folder: Path) -> list[Path]:
 
     # Retrieval: AP, AP50, AP25 per config.
     fig, ax = plt.subplots(figsize=(7, 4))
-    x = np.arange(len(configs))
-    for i, (label, key) in enumerate((("AP", "ap"), ("AP50", "ap50"), ("AP25", "ap25"))):
-        vals = [c["runs"]["3cm"]["eval"][key] or 0.0 for c in configs]
-        bars = ax.bar(x + (i - 1) * 0.25, vals, 0.25, label=label)
-        ax.bar_label(bars, fmt="%.2f", fontsize=8)
-    ax.set_xticks(x, names)
+    bars(ax, [(label, [c["runs"]["3cm"]["eval"][key] or 0.0 for c in configs]) for label, key in (("AP", "ap"), ("AP50", "ap50"), ("AP25", "ap25"))], 0.25)
     ax.set_ylim(0, 1.05)
     ax.set_ylabel("average precision")
     ax.set_title("OpenLex3D retrieval (3 cm)")
-    ax.legend()
     save(fig, "retrieval.png")
 
     # Efficiency: time per sequence and peak RAM, 3 cm against 5 cm.
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(9, 4))
-    for i, voxel in enumerate(("3cm", "5cm")):
-        runs = [c["runs"].get(voxel) for c in configs]
-        t = [r["run"]["seconds"] / 60 if r else 0.0 for r in runs]
-        m = [r["run"]["peak_rss_mb"] / 1024 if r else 0.0 for r in runs]
-        b1 = a1.bar(x + (i - 0.5) * 0.35, t, 0.35, label=voxel.replace("cm", " cm"))
-        b2 = a2.bar(x + (i - 0.5) * 0.35, m, 0.35, label=voxel.replace("cm", " cm"))
-        a1.bar_label(b1, fmt="%.2f", fontsize=8)
-        a2.bar_label(b2, fmt="%.2f", fontsize=8)
-    for a, label in ((a1, "time per sequence (min)"), (a2, "peak RAM (GB)")):
-        a.set_xticks(x, names)
+    for a, field, scale, label in ((a1, "seconds", 60, "time per sequence (min)"), (a2, "peak_rss_mb", 1024, "peak RAM (GB)")):
+        groups = []
+        for voxel in ("3cm", "5cm"):
+            runs = [c["runs"].get(voxel) for c in configs]
+            groups.append((voxel.replace("cm", " cm"), [r["run"][field] / scale if r else 0.0 for r in runs]))
+        bars(a, groups, 0.35)
         a.set_ylabel(label)
-        a.legend()
     a1.set_title("Mapping time")
     a2.set_title("Peak memory")
     save(fig, "efficiency.png")
@@ -220,14 +218,9 @@ def plots(res: dict[str, Any], folder: Path) -> list[Path]:
 
     # Gallery ablation.
     fig, ax = plt.subplots(figsize=(6, 4))
-    for i, g in enumerate(("max", "mean")):
-        vals = [c["runs"]["3cm"]["eval"]["gallery"][g] or 0.0 for c in configs]
-        bars = ax.bar(x + (i - 0.5) * 0.35, vals, 0.35, label="max (eq. 10)" if g == "max" else "mean")
-        ax.bar_label(bars, fmt="%.2f", fontsize=8)
-    ax.set_xticks(x, names)
+    bars(ax, [(label, [c["runs"]["3cm"]["eval"]["gallery"][g] or 0.0 for c in configs]) for g, label in (("max", "max (eq. 10)"), ("mean", "mean"))], 0.35)
     ax.set_ylim(0, 1.05)
     ax.set_ylabel("top-1 hit rate")
     ax.set_title("Gallery scoring (synonym queries, 3 cm)")
-    ax.legend()
     save(fig, "gallery.png")
     return written

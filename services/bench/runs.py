@@ -58,20 +58,26 @@ def map_run(
 def evaluate_map(map_dir: Path, gt: Path) -> dict[str, Any]:
     """OpenLex3D segmentation and retrieval, class-agnostic instances, and the top-1 query hit
     rates with the gallery's max (eq. 10) and mean."""
-    from services.query.evaluate import eval_queries
-    from shared.eval import eval_instances, eval_openlex3d
+    from services.query.evaluate import top1_hit_rates
+    from shared.eval.gt import load_gt
+    from shared.eval.instances import evaluate_instances
+    from shared.eval.openlex3d import evaluate_openlex3d
+    from shared.eval.prediction import load_prediction
+    from shared.eval.text import default_encoder
 
-    ol = eval_openlex3d(map_dir, gt)
-    inst = eval_instances(map_dir, gt)
+    # Both scorings take the loaded map and ground truth; read them once.
+    gt_data, pred = load_gt(gt), load_prediction(map_dir)
+    ol = evaluate_openlex3d(pred, gt_data, default_encoder())
+    inst = evaluate_instances(pred, gt_data)
     keys = ("synonyms", "depictions", "vis_sim", "clutter", "missing", "incorrect", "ap", "ap50", "ap25", "top1_hit_rate")
     out: dict[str, Any] = {k: ol.get(k) for k in keys}
     out["instances"] = {k: inst.get(k) for k in ("ap", "ap50", "ap25", "segments_per_object")}
-    out["gallery"] = {g: eval_queries(map_dir, gt, gallery=g)["top1_hit_rate"] for g in ("max", "mean")}
+    out["gallery"] = top1_hit_rates(map_dir, gt)
     return out
 
 
 def machine() -> dict[str, Any]:
-    """What ran the bench: OS, CPU model and count, Python, GPU if torch sees one."""
+    """What ran the bench: OS, CPU model and count, Python, and the GPUs ``nvidia-smi`` lists."""
     cpu = platform.processor() or ""
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -81,10 +87,11 @@ def machine() -> dict[str, Any]:
     except OSError:
         pass
     gpu = None
-    if "torch" in sys.modules:  # never import torch just to describe the machine
-        torch = sys.modules["torch"]
-        if torch.cuda.is_available():
-            gpu = torch.cuda.get_device_name(0)
+    try:  # the mapping runs are child processes: ask the driver, not torch, what they ran on
+        names = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True, text=True, timeout=10, check=True).stdout
+        gpu = ", ".join(n.strip() for n in names.splitlines() if n.strip()) or None
+    except (OSError, subprocess.SubprocessError):
+        pass
     return {"platform": platform.platform(), "cpu": cpu, "cpus": os.cpu_count(), "python": platform.python_version(), "gpu": gpu}
 
 

@@ -179,7 +179,8 @@ def merge_hypotheses(
 ) -> tuple[Annotated[np.ndarray, "(V, k) int32"], Annotated[np.ndarray, "(V, k) float32"]]:
     """Per row, the union of two hypothesis sets (each track at most once per set), weights of a
     track in both added, entries of zero weight dropped, the ``k`` heaviest kept in descending
-    weight (ties: the first set's slots, in slot order, then the second's)."""
+    weight (ties: the first set's slots, in slot order, then the second's); ``k`` is at most
+    the two sets' slots together."""
     ids_a = np.where(w_a > 0, ids_a, -1)
     ids_b = np.where(w_b > 0, ids_b, -1)
     w_a = np.where(ids_a >= 0, w_a, 0.0).astype(np.float64)
@@ -192,10 +193,6 @@ def merge_hypotheses(
     order = np.argsort(np.where(ids >= 0, -w, np.inf), axis=1, kind="stable")[:, :k]
     ids = np.take_along_axis(ids, order, axis=1).astype(np.int32)
     w = np.take_along_axis(w, order, axis=1)
-    if ids.shape[1] < k:
-        pad = k - ids.shape[1]
-        ids = np.pad(ids, ((0, 0), (0, pad)), constant_values=-1)
-        w = np.pad(w, ((0, 0), (0, pad)))
     return ids, np.where(ids >= 0, w, 0.0).astype(np.float32)
 
 

@@ -86,20 +86,11 @@ class MapTruth:
         return oid, name or f"object {oid}", float(ious[c])
 
 
-def eval_queries(
-    map_dir: str | Path,
-    gt_dir: str | Path,
-    *,
-    min_size_m: float = 0.2,
-    gallery: Literal["max", "mean"] | None = None,
-    details: bool = False,
-) -> dict[str, Any]:
-    """Top-1 hit rate of the synonym queries of objects larger than ``min_size_m``, scored
-    with the map config's gallery rule or ``gallery``."""
-    t0 = time.perf_counter()
-    truth = MapTruth(map_dir, gt_dir)
+def _top1_rows(
+    truth: MapTruth, offline: OfflineQueries, map_dir: str | Path, gallery: Literal["max", "mean"] | None, min_size_m: float
+) -> list[dict[str, Any]]:
+    """The top answer to each synonym query of an object over ``min_size_m``, and whether it hits."""
     gt = truth.gt
-    offline = OfflineQueries(map_dir, map_config(map_dir))
     rows = []
     for query in gt.queries:
         cols = truth.columns(query.object_ids)
@@ -115,6 +106,40 @@ def eval_queries(
             top = reply.hits[0].segment
             iou = float(truth.iou(top, cols).max())
         rows.append({"query": query.text, "objects": list(query.object_ids), "top_segment": top, "iou": round(iou, 4), "hit": iou >= TOP1_IOU})
+    return rows
+
+
+def top1_hit_rates(
+    map_dir: str | Path,
+    gt_dir: str | Path,
+    galleries: tuple[Literal["max", "mean"], ...] = ("max", "mean"),
+    *,
+    min_size_m: float = 0.2,
+) -> dict[str, float | None]:
+    """``eval_queries``' top-1 hit rate for each gallery rule, the map and ground truth read once."""
+    truth = MapTruth(map_dir, gt_dir)
+    offline = OfflineQueries(map_dir, map_config(map_dir))
+    out: dict[str, float | None] = {}
+    for g in galleries:
+        hits = [r["hit"] for r in _top1_rows(truth, offline, map_dir, g, min_size_m)]
+        out[g] = float(np.mean(hits)) if hits else None
+    return out
+
+
+def eval_queries(
+    map_dir: str | Path,
+    gt_dir: str | Path,
+    *,
+    min_size_m: float = 0.2,
+    gallery: Literal["max", "mean"] | None = None,
+    details: bool = False,
+) -> dict[str, Any]:
+    """Top-1 hit rate of the synonym queries of objects larger than ``min_size_m``, scored
+    with the map config's gallery rule or ``gallery``."""
+    t0 = time.perf_counter()
+    truth = MapTruth(map_dir, gt_dir)
+    offline = OfflineQueries(map_dir, map_config(map_dir))
+    rows = _top1_rows(truth, offline, map_dir, gallery, min_size_m)
     hits = [r["hit"] for r in rows]
     out: dict[str, Any] = {
         "top1_hit_rate": float(np.mean(hits)) if hits else None,
