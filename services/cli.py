@@ -131,7 +131,12 @@ def _cmd_eval_openlex3d(args: argparse.Namespace) -> int:
 
     if args.pred is None and not args.oracle:
         raise CommandError("give --pred MAP_DIR, or --oracle to score the ground truth itself")
-    result = eval_openlex3d(args.pred, args.gt, oracle=args.oracle, top_n=args.top_n)
+    encoder = None
+    if args.pred is not None and not args.oracle and (Path(args.pred) / "config.yaml").is_file():
+        from services.query.offline import map_text_encoder
+
+        encoder = map_text_encoder(Path(args.pred))  # a CLIP map is scored in CLIP's space
+    result = eval_openlex3d(args.pred, args.gt, oracle=args.oracle, top_n=args.top_n, encoder=encoder)
     keys = ["synonyms", "depictions", "vis_sim", "clutter", "missing", "incorrect", "ap", "ap50", "ap25", "top1_hit_rate"]
     _print_metrics(result, args.json, keys)
     return 0
@@ -380,11 +385,13 @@ def _cmd_bench_run(args: argparse.Namespace) -> int:
         raise CommandError("give either --preset small|demo|revisit or --sequence SEQ_DIR --gt GT_DIR")
     if args.sequence is not None and not args.config:
         raise CommandError("--sequence needs at least one --config FILE (simulated perception works on synthetic scenes only)")
+    if args.rate_seconds is not None and args.rate_seconds <= 0:
+        raise CommandError(f"--rate-seconds must be positive, got {args.rate_seconds}")
     try:
         res = run_bench(
             args.out, preset=args.preset, seed=args.seed, sequence=args.sequence, gt=args.gt, configs=args.config or [],
             dataset=args.dataset, max_frames=args.max_frames, rate_trials=args.rate_trials, rate_frames=args.rate_frames,
-            progress=not args.json,
+            rate_seconds=args.rate_seconds, random_weights=args.random_weights, resume=args.resume, progress=not args.json,
         )  # fmt: skip
     except BenchError as exc:
         raise CommandError(str(exc)) from None
@@ -546,6 +553,9 @@ def build_parser() -> argparse.ArgumentParser:
     br.add_argument("--max-frames", type=int, metavar="N", help="map only the first N frames")
     br.add_argument("--rate-trials", type=int, default=3, metavar="N", help="live runs per tracker mode in the input-rate search (0 skips it)")
     br.add_argument("--rate-frames", type=int, default=60, metavar="N", help="frames per live run")
+    br.add_argument("--rate-seconds", type=float, metavar="S", help="instead: each live run sends frames for about S seconds (two keyframes at least)")
+    br.add_argument("--resume", action="store_true", help="keep the maps an interrupted run of the same --out finished")
+    br.add_argument("--random-weights", type=Path, metavar="DIR", help="run each config's models on random weights written to DIR: the real architectures' times and memory, meaningless maps")
     br.add_argument("--json", action="store_true", help='print {"out", "markdown", "json", "plots", "seconds"}')
     br.set_defaults(func=_cmd_bench_run)
 

@@ -16,7 +16,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from services.bench.rate import live_trial, search_rate
+from services.bench.rate import live_trial, search_rate, trial_frames
 from services.bench.report import markdown, plots
 from services.bench.runs import (
     REPO,
@@ -56,16 +56,21 @@ def _config_names(paths: Sequence[Path]) -> list[str]:
 
 
 def _rate_search(
-    seq: Path, cfg: Path, work: Path, start: float, trials: int, frames: int | None, advance: Callable[[str], None]
+    seq: Path, cfg: Path, work: Path, start: float, trials: int, frames: int | None, seconds: float | None,
+    advance: Callable[[str], None],
 ) -> tuple[float | None, list[dict[str, Any]]]:
     """``search_rate`` over live trials of ``cfg``, each in its own folder under ``work``."""
+    from shared.config import load_config
+
+    tracker = load_config(cfg).tracker
+    interval = 1 if tracker.mode == "per_frame" else tracker.keyframe_interval
     count = 0
 
     def trial(rate: float) -> dict[str, Any]:
         nonlocal count
-        res = live_trial(seq, cfg, work / f"trial{count}", rate, frames)
+        res = live_trial(seq, cfg, work / f"trial{count}", rate, trial_frames(rate, seconds, frames, interval))
         count += 1
-        advance(f"{work.name} at {rate:.1f} Hz: {'no drops' if res['sustained'] else 'drops'}")
+        advance(f"{work.name} at {rate:.3g} Hz: {'sustained' if res['sustained'] else 'not sustained'}")
         return res
 
     return search_rate(trial, start, trials)
@@ -104,9 +109,20 @@ def run_bench(
     max_frames: int | None = None,
     rate_trials: int = 3,
     rate_frames: int | None = 60,
+    rate_seconds: float | None = None,
+    random_weights: Path | None = None,
+    resume: bool = False,
     progress: bool = True,
 ) -> dict[str, Any]:
-    """Run every step; returns the result written to ``out/bench.json``."""
+    """Run every step; returns the result written to ``out/bench.json``.
+
+    ``rate_seconds``: each live trial lasts about this long at its rate (instead of
+    ``rate_frames`` frames), two keyframes at least. ``random_weights``: a folder for
+    random-weight files of each config's models, which the runs then use (timings of the
+    real architectures without their weights; the quality columns mean nothing then).
+    ``resume``: a map already in ``out/maps`` with its ``run.json`` is scored, not made
+    again, so an interrupted bench goes on where it stopped.
+    """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     configs = [Path(c) for c in configs] or [DEFAULT_CONFIG]
@@ -131,11 +147,23 @@ def run_bench(
     results = []
     try:
         for name, path in zip(names, configs, strict=True):
-            entry: dict[str, Any] = {"name": name, "path": str(path), "runs": {}, "rate": {}}
+            entry: dict[str, Any] = {"name": name, "path": str(path), "runs": {}, "rate": {}, "random_weights": random_weights is not None}
+            base = path
+            if random_weights is not None:
+                from services.models.random_weights import random_weight_overrides
+                from shared.config import load_config
+
+                log.info("random-weight models of %s in %s", path, random_weights)
+                base = write_variant(path, random_weight_overrides(load_config(path), random_weights), out / "configs" / f"{name}-random.yaml")
             for run_name, overrides in VARIANTS.items():
-                cfg = write_variant(path, overrides, out / "configs" / f"{name}-{run_name}.yaml")
+                cfg = write_variant(base, overrides, out / "configs" / f"{name}-{run_name}.yaml")
                 map_dir = out / "maps" / f"{name}-{run_name}"
-                run = map_run(seq, cfg, map_dir, dataset=dataset, max_frames=max_frames)
+                done = map_dir / "run.json"
+                if resume and done.is_file():
+                    log.info("reusing the finished map %s", map_dir)
+                    run = json.loads(done.read_text())
+                else:
+                    run = map_run(seq, cfg, map_dir, dataset=dataset, max_frames=max_frames)
                 ev = evaluate_map(map_dir, gt_dir)
                 entry["runs"][run_name] = {"config": str(cfg), "map": str(map_dir), "run": run, "eval": ev}
                 entry.setdefault("backends", run.get("backends", {}))
@@ -143,10 +171,12 @@ def run_bench(
             if rate_trials > 0:
                 for run_name in ("3cm", "per_frame"):
                     run = entry["runs"][run_name]
-                    start = RATE_START_SHARE * max(float(run["run"]["hz"] or 1.0), 0.2)
+                    start = RATE_START_SHARE * float(run["run"]["hz"] or 1.0)
                     work = out / "rate" / f"{name}-{run_name}"
-                    best, trials = _rate_search(seq, Path(run["config"]), work, start, rate_trials, rate_frames, advance)
-                    entry["rate"][run_name] = {"max_sustained_hz": best, "trials": trials, "frames_per_trial": rate_frames}
+                    best, trials = _rate_search(seq, Path(run["config"]), work, start, rate_trials, rate_frames, rate_seconds, advance)
+                    entry["rate"][run_name] = {
+                        "max_sustained_hz": best, "trials": trials, "frames_per_trial": rate_frames, "seconds_per_trial": rate_seconds,
+                    }  # fmt: skip
             results.append(entry)
     finally:
         if bar is not None:

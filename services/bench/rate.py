@@ -4,12 +4,15 @@ A trial starts the router, keyframe_vl, tracker and fusion as separate processes
 Zenoh (``trackgraph launch``'s Supervisor), then the source in ``live`` mode at the trial's
 rate. A live source never waits for a slow stage, so a stage that cannot keep up drops frames,
 and each drop is counted where it happens: the source (frames it was too late to send), the
-tracker (frames its newest-only input replaced) and fusion (tracked frames its bounded queue
-had no room for). A rate is sustained when no stage dropped a frame, every frame published
-reached the map, and the map kept pace: its frames were fused, first to last, at 90% of the
-source's rate or more. The last condition matters because buffers hide a slow stage for a
-while; the tracker keeps at most a few live frames, but fusion queues every tracked frame
-rather than lose it.
+tracker (frames its newest-only input replaced), keyframe_vl (keyframe requests its queue had
+no room for) and fusion (tracked frames its bounded queue had no room for). A rate is
+sustained when no stage dropped anything, every frame published reached the map, the map kept
+pace (its frames were fused, first to last, at 90% of the source's rate or more), and so did
+keyframe_vl: every keyframe got its masks and CLIP features back, first to last at 90% of the
+rate the tracker asked for them (``services.tracker.pace``). The pace conditions matter
+because buffers hide a slow stage for a while: fusion queues every tracked frame rather than
+lose it, and a live tracker never waits for masks, so a keyframe_vl that cannot keep up only
+makes its answers later and later while the frames flow on, tracked on stale labels.
 
 The search doubles the rate after a sustained trial and halves it after a failed one until it
 has bracketed the limit, then bisects; the answer is the highest sustained rate tried.
@@ -20,7 +23,9 @@ from __future__ import annotations
 import ast
 import json
 import logging
+import math
 import re
+import shutil
 import socket
 import threading
 import time
@@ -38,6 +43,10 @@ PACE_SHARE = 0.9
 source's rate, besides dropping none."""
 STARTUP_ALLOWANCE_S = 180.0
 """A trial is stopped when it runs this much longer than its frames take at its rate."""
+KEYFRAME_TIMEOUT_S = 600.0
+"""``tracker.keyframe_timeout_s`` in a trial (unless the config's is longer): the pace rule
+judges late answers, so a tracker that gave up on slow masks must not hide them. Long
+enough for the paper's models on a CPU (about a minute a keyframe on two cores)."""
 
 
 def free_port() -> int:
@@ -72,7 +81,7 @@ def start_live_system(
     work.mkdir(parents=True, exist_ok=True)
     port = free_port()
     doc = {
-        "config": str(config),
+        "config": str(Path(config).resolve()),  # the launch file lives in ``work``
         # Shared memory has dropped messages under load in some Zenoh versions: a drop here
         # must be the system's, not the transport's.
         "overrides": deep_merge({"transport": {"shared_memory": False}}, overrides),
@@ -91,11 +100,24 @@ def start_live_system(
     return plan, sup, runner
 
 
+def trial_frames(rate_hz: float, seconds: float | None, frames: int | None, keyframe_interval: int) -> int | None:
+    """Frames in a trial at ``rate_hz``: ``frames``; or, with ``seconds``, as many as the
+    source sends in that time but never fewer than two keyframes' worth
+    (``keyframe_interval + 1``), so that keyframe_vl's pace can be judged."""
+    if seconds is None:
+        return frames
+    return max(math.ceil(seconds * rate_hz), keyframe_interval + 1)
+
+
 def live_trial(sequence: Path, config: Path, work: Path, rate_hz: float, frames: int | None) -> dict[str, Any]:
     """One run of the live system at ``rate_hz`` over the first ``frames`` frames."""
+    from services.tracker.pace import kept_up
+    from shared.config.root import load_config
+
     source: dict[str, Any] = {"mode": "live", "rate_hz": float(rate_hz)}
     if frames:
         source["max_frames"] = int(frames)
+    timeout = max(load_config(config).tracker.keyframe_timeout_s, KEYFRAME_TIMEOUT_S)
     services = [
         {"name": "router"},
         {"name": "keyframe_vl"},
@@ -104,7 +126,9 @@ def live_trial(sequence: Path, config: Path, work: Path, rate_hz: float, frames:
         {"name": "source", "after": ["tracker", "fusion"]},
     ]
     t0 = time.monotonic()
-    plan, sup, runner = start_live_system(config, sequence, work, {"source": source}, services, restart={"max_restarts": 0})
+    overrides = {"source": source, "tracker": {"keyframe_timeout_s": timeout}}
+    shutil.rmtree(work, ignore_errors=True)  # an earlier run's map and logs are not this trial's
+    plan, sup, runner = start_live_system(config, sequence, work, overrides, services, restart={"max_restarts": 0})
     out = plan.out
     budget = (frames or 10_000) / rate_hz + STARTUP_ALLOWANCE_S
     runner.join(timeout=budget)
@@ -117,11 +141,13 @@ def live_trial(sequence: Path, config: Path, work: Path, rate_hz: float, frames:
     src = SOURCE_LINE.findall((logs / "source.log").read_text(errors="replace")) if (logs / "source.log").exists() else []
     tracker = last_stats(logs / "tracker.log", "tracker stopped") or {}
     fusion = last_stats(logs / "fusion.log", "fusion stopped") or {}
+    kvl = last_stats(logs / "keyframe_vl.log", "keyframe_vl stopped") or {}
     run = json.loads((out / "run.json").read_text()) if (out / "run.json").exists() else {}
     published = int(src[-1][0]) if src else None
     drops = {
         "source": int(src[-1][3]) if src else None,
         "tracker": tracker.get("frames_in", {}).get("dropped"),
+        "keyframe_vl": kvl.get("requests", {}).get("dropped"),
         "fusion": fusion.get("input_dropped"),
     }
     known = [v for v in drops.values() if v is not None]
@@ -134,15 +160,19 @@ def live_trial(sequence: Path, config: Path, work: Path, rate_hz: float, frames:
     fused_s = run.get("fused_seconds")
     pace = (int(in_map) - 1) / fused_s if in_map and fused_s else None
     kept_pace = pace is not None and pace >= PACE_SHARE * rate_hz
-    ok = not timed_out and sup.error is None and bool(published) and dropped == 0 and lost == 0 and kept_pace
+    keyframes = tracker.get("keyframes")
+    kf_ok = keyframes is not None and kept_up(keyframes, PACE_SHARE)
+    ok = not timed_out and sup.error is None and bool(published) and dropped == 0 and lost == 0 and kept_pace and kf_ok
     return {
-        "rate_hz": round(float(rate_hz), 2),
+        "rate_hz": float(rate_hz),
         "published": published,
         "dropped": dropped,
         "drops": drops,
         "frames_in_map": in_map,
         "lost": lost,
-        "fused_hz": None if pace is None else round(pace, 2),
+        "fused_hz": None if pace is None else round(pace, 4),
+        "keyframes": keyframes,
+        "keyframes_kept_up": kf_ok,
         "sustained": bool(ok),
         "error": sup.error or ("timed out" if timed_out else None),
         "seconds": round(time.monotonic() - t0, 1),
@@ -153,10 +183,10 @@ def search_rate(trial: Callable[[float], dict[str, Any]], start_hz: float, trial
     """The highest sustained rate found in ``trials`` trials, starting at ``start_hz``."""
     lo: float | None = None  # highest sustained
     hi: float | None = None  # lowest failed
-    rate = max(float(start_hz), 0.1)
+    rate = max(float(start_hz), MIN_RATE_HZ)
     done: list[dict[str, Any]] = []
     for _ in range(max(trials, 1)):
-        res = trial(round(rate, 2))
+        res = trial(round_rate(rate))
         done.append(res)
         if res["sustained"]:
             lo = rate if lo is None else max(lo, rate)
@@ -170,3 +200,12 @@ def search_rate(trial: Callable[[float], dict[str, Any]], start_hz: float, trial
             rate = hi / 2  # type: ignore[operator]
     best = max((r["rate_hz"] for r in done if r["sustained"]), default=None)
     return best, done
+
+
+MIN_RATE_HZ = 0.001
+"""The slowest rate tried: the paper's models on a CPU manage a few hundredths of a hertz."""
+
+
+def round_rate(rate: float) -> float:
+    """Three significant digits: 12.3, 0.0456."""
+    return float(f"{max(rate, MIN_RATE_HZ):.3g}")

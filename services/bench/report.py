@@ -13,6 +13,11 @@ def _f(x: Any, digits: int = 3) -> str:
     return "n/a" if x is None else f"{x:.{digits}f}"
 
 
+def _hz(x: Any) -> str:
+    """Three significant digits: a CPU running the paper's models manages hundredths of a hertz."""
+    return "n/a" if x is None else f"{x:.3g}"
+
+
 def _gb(mb: Any) -> str:
     return "n/a" if mb is None else f"{mb / 1024:.2f} GB"
 
@@ -42,6 +47,14 @@ def markdown(res: dict[str, Any]) -> str:
             f"Simulated perception in {', '.join(f'`{n}`' for n in simulated)}: these rows measure the mapping "
             "(tracking, fusion, segments, retrieval) on the synthetic scene's own noisy masks and label "
             "embeddings, not FastSAM or CLIP.",
+            "",
+        ]
+    random = [c["name"] for c in res["configs"] if c.get("random_weights")]
+    if random:
+        lines += [
+            f"Random weights in {', '.join(f'`{n}`' for n in random)}: the real architectures run with untrained "
+            "weights (FastSAM takes every detection up to a view's worth of masks), so their times, rates and "
+            "memory are the models' own, and their maps, and every quality column of those rows, mean nothing.",
             "",
         ]
     lines += ["Configs and backends (segmenter, VL encoder, dense features):", ""]
@@ -81,7 +94,7 @@ def markdown(res: dict[str, Any]) -> str:
             ev, rate = r["eval"], c["rate"].get(key, {})
             rows.append([
                 c["name"], mode, _f(ev["ap"]), _f(ev["ap50"]), _f(ev["ap25"]), _f(ev["synonyms"]),
-                _f(ev["instances"]["ap50"]), _f(rate.get("max_sustained_hz"), 1), _f(r["run"]["hz"], 2), _gb(r["run"]["peak_rss_mb"]),
+                _f(ev["instances"]["ap50"]), _hz(rate.get("max_sustained_hz")), _hz(r["run"]["hz"]), _gb(r["run"]["peak_rss_mb"]),
             ])  # fmt: skip
     lines += _table(
         ["config", "tracker", "AP", "AP50", "AP25", "S", "class-agnostic AP50", "max input Hz without drops", "in-process Hz", "peak RAM"],
@@ -98,19 +111,29 @@ def markdown(res: dict[str, Any]) -> str:
                     " trackers' own costs, not what propagation saves in segmentation."
                 )
             lines += ["", line]
-    lines += ["", "Rate trials (live source, distributed system, frames dropped per stage):", ""]
+    lines += [
+        "",
+        "Rate trials (live source, distributed system; frames dropped per stage, keyframe requests dropped by "
+        "keyframe_vl, keyframes answered with masks and CLIP features, and the answers' rate against the "
+        "requests'):",
+        "",
+    ]
     rows = []
     for c in res["configs"]:
         for key, mode in (("3cm", "propagation"), ("per_frame", "per-frame")):
             for t in c["rate"].get(key, {}).get("trials", []):
-                d = t["drops"]
+                d, kf = t["drops"], t.get("keyframes") or {}
                 rows.append([
-                    c["name"], mode, _f(t["rate_hz"], 1), str(t["published"]), str(d["source"]), str(d["tracker"]), str(d["fusion"]),
-                    str(t.get("frames_in_map")), _f(t.get("fused_hz"), 1), "yes" if t["sustained"] else "no",
+                    c["name"], mode, _hz(t["rate_hz"]), str(t["published"]), str(d["source"]), str(d["tracker"]),
+                    str(d.get("keyframe_vl")), str(d["fusion"]), str(t.get("frames_in_map")), _hz(t.get("fused_hz")),
+                    f"{kf.get('answered')}/{kf.get('requested')}", f"{_hz(kf.get('answer_hz'))} / {_hz(kf.get('request_hz'))}",
+                    "yes" if t["sustained"] else "no",
                 ])  # fmt: skip
     lines += _table(
-        ["config", "tracker", "input Hz", "published", "dropped by source", "by tracker", "by fusion", "in map", "fused Hz", "sustained"], rows
-    )
+        ["config", "tracker", "input Hz", "published", "dropped by source", "by tracker", "requests dropped by keyframe_vl",
+         "by fusion", "in map", "fused Hz", "keyframes answered", "answers / requests Hz", "sustained"],
+        rows,
+    )  # fmt: skip
     lines += ["", "## Gallery ablation (top-1 hit rate of the synonym queries, 3 cm)", ""]
     lines += _table(
         ["config", "max (eq. 10)", "mean"],

@@ -59,15 +59,15 @@ def evaluate_map(map_dir: Path, gt: Path) -> dict[str, Any]:
     """OpenLex3D segmentation and retrieval, class-agnostic instances, and the top-1 query hit
     rates with the gallery's max (eq. 10) and mean."""
     from services.query.evaluate import top1_hit_rates
+    from services.query.offline import map_text_encoder
     from shared.eval.gt import load_gt
     from shared.eval.instances import evaluate_instances
     from shared.eval.openlex3d import evaluate_openlex3d
     from shared.eval.prediction import load_prediction
-    from shared.eval.text import default_encoder
 
     # Both scorings take the loaded map and ground truth; read them once.
     gt_data, pred = load_gt(gt), load_prediction(map_dir)
-    ol = evaluate_openlex3d(pred, gt_data, default_encoder())
+    ol = evaluate_openlex3d(pred, gt_data, map_text_encoder(map_dir))
     inst = evaluate_instances(pred, gt_data)
     keys = ("synonyms", "depictions", "vis_sim", "clutter", "missing", "incorrect", "ap", "ap50", "ap25", "top1_hit_rate")
     out: dict[str, Any] = {k: ol.get(k) for k in keys}

@@ -76,3 +76,48 @@ def save_random_dinov3_timm(path: str | Path, seed: int = 0) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     torch.save(model.state_dict(), path)
     return path
+
+
+RANDOM_DINOV3_FILE = "dinov3_vits16plus_timm.pth"
+
+
+RANDOM_MAX_MASKS = 24
+"""Masks per keyframe from random FastSAM weights: the objects of 100 px or more that a view
+of the synthetic ``demo`` scene holds, on average (benchmarks/RESULTS.md, keyframe_vl)."""
+
+
+def random_weight_overrides(cfg, folder: str | Path, seed: int = 0, max_masks: int = RANDOM_MAX_MASKS) -> dict:
+    """Random-weight files, in ``folder``, of every model backend ``cfg`` (a
+    ``TrackGraphConfig``) names, and the config overrides that point it at them: timings of
+    the paper's architectures where their weights are absent. A file already there is
+    reused, so a bench of several configs writes ViT-H-14's 4 GB once.
+
+    FastSAM is built ``alive`` and takes every detection (``conf`` 0): untrained scores sit
+    below the real threshold, and a segmenter that returns no mask would leave CLIP, keyframe
+    correction and propagation with nothing to do. ``max_masks`` then caps the count at about
+    what a trained one finds in a view. Maps made this way are meaningless;
+    only their times and memory count.
+    """
+    folder = Path(folder).resolve()  # services may run from another folder
+    out: dict = {}
+    seg, vl, feats = cfg.keyframe_vl.segmenter, cfg.keyframe_vl.vl, cfg.tracker.features
+    if seg.backend == "fastsam":
+        stem = Path(seg.weights).stem.lower()
+        variant = stem.rsplit("-", 1)[-1] if "-" in stem else "x"
+        if variant not in ("n", "s", "m", "l", "x"):
+            raise ValueError(f"keyframe_vl.segmenter.weights: {seg.weights!r} names no FastSAM scale (FastSAM-x.pt, FastSAM-s.pt)")
+        path = folder / f"FastSAM-{variant}-random.pt"
+        if not path.is_file():
+            save_random_fastsam(path, variant, seed=seed, alive=True)
+        out["keyframe_vl"] = {"segmenter": {"weights": str(path), "conf": 0.0, "max_masks": int(max_masks)}}
+    if vl.backend == "openclip":
+        path = folder / f"open_clip_{vl.model}-random.bin"
+        if not path.is_file():
+            save_random_openclip(path, vl.model, seed=seed)
+        out.setdefault("keyframe_vl", {})["vl"] = {"weights": str(path)}
+    if feats.backend == "dinov3":
+        path = folder / RANDOM_DINOV3_FILE
+        if not path.is_file():
+            save_random_dinov3_timm(path, seed=seed)
+        out["tracker"] = {"features": {"loader": "timm", "weights": str(path)}}
+    return out

@@ -59,3 +59,29 @@ class OfflineQueries:
 
     def ask(self, req: QueryRequest) -> QueryReply:
         return self.engine.answer(self.index, req)
+
+
+class MapTextEncoder:
+    """The text tower of a map's own VL encoder, as the evaluation's ``TextEncoder``: a map
+    built with CLIP is scored in CLIP's space, not in the MiniLM space of simulated maps."""
+
+    def __init__(self, cfg: TrackGraphConfig) -> None:
+        from services.keyframe_vl.encoders import make_vl_encoder
+
+        self._encoder = make_vl_encoder(cfg.keyframe_vl.vl)
+        self.name = self._encoder.name
+        self.dim = int(self._encoder.dim)
+
+    def encode(self, texts: list[str]) -> np.ndarray:
+        return self._encoder.encode_text(list(texts))
+
+
+def map_text_encoder(map_dir: Path, cfg: TrackGraphConfig | None = None):
+    """The text encoder to score ``map_dir`` with: MiniLM for the simulated VL backend (its
+    labels are MiniLM embeddings), else the map's own encoder from its ``config.yaml``."""
+    from shared.eval.text import default_encoder
+
+    cfg = cfg or map_config(map_dir)
+    if cfg.keyframe_vl.vl.backend == "simulated":
+        return default_encoder()
+    return MapTextEncoder(cfg)

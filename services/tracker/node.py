@@ -17,6 +17,7 @@ import threading
 import time
 
 from services.keyframe_vl.types import Masks
+from services.tracker.pace import KeyframeLedger
 from shared.config.root import TrackGraphConfig
 from shared.messages.base import Envelope
 from shared.messages.frames import EndOfSequence, Frame, FrameAck, TrackedFrame
@@ -62,6 +63,7 @@ class TrackerNode:
         self._end_at = 0.0
         self._last_index = -1
         self.timeouts = 0
+        self.keyframes = KeyframeLedger()
         self.frames = 0
         self.errors = 0
         self._worker = threading.Thread(target=self._run, name="tracker:worker", daemon=True)
@@ -118,6 +120,7 @@ class TrackerNode:
         if req is not None:
             self.requests.put(req)
             self.pending[frame.frame_index] = time.monotonic()
+            self.keyframes.request(frame.frame_index, self.pending[frame.frame_index])
             if self.cfg.tracker.wait_for_masks:
                 self._wait_masks(frame.frame_index)
         self._expire()
@@ -149,19 +152,25 @@ class TrackerNode:
         for k, msg in arrived:
             self.pending.pop(k, None)
             if msg.error:
+                self.keyframes.failed += 1
                 log.warning("keyframe %d: keyframe_vl failed (%s); propagating on", k, msg.error)
                 continue
             if hasattr(self.core, "apply_masks") and self.core.apply_masks(k, Masks(msg.masks, msg.boxes, msg.scores)):
                 self.awaiting_features[k] = time.monotonic()
+                self.keyframes.masks(k, self.awaiting_features[k])
+            elif hasattr(self.core, "apply_masks"):
+                self.keyframes.stale += 1
         for f in features:
             self._on_features(f)
 
     def _on_features(self, msg: MaskFeatures) -> None:
         self.awaiting_features.pop(msg.frame_index, None)
         if msg.error is not None:
+            self.keyframes.failed += 1
             log.warning("keyframe %d: no CLIP features (%s)", msg.frame_index, msg.error)
         elif hasattr(self.core, "apply_features"):
             self.core.apply_features(msg.frame_index, msg.features)
+            self.keyframes.features(msg.frame_index, time.monotonic())
             # At once, not with the next frame: after the last keyframe there is none.
             feats = self.core.take_track_features(msg.frame_index)
             if feats is not None:
@@ -193,10 +202,14 @@ class TrackerNode:
             if now - t > self.cfg.tracker.keyframe_timeout_s:
                 del self.pending[k]
                 self.timeouts += 1
+                self.keyframes.timed_out += 1
                 log.warning("keyframe %d: no masks after %.1f s (is keyframe_vl running?); propagating on", k, self.cfg.tracker.keyframe_timeout_s)
 
     def stats(self) -> dict:
-        return {"frames": self.frames, "errors": self.errors, "timeouts": self.timeouts, "pending_keyframes": len(self.pending), "frames_in": self.subs[0].stats.as_dict()}
+        return {
+            "frames": self.frames, "errors": self.errors, "timeouts": self.timeouts, "pending_keyframes": len(self.pending),
+            "frames_in": self.subs[0].stats.as_dict(), "keyframes": self.keyframes.as_dict(),
+        }  # fmt: skip
 
     def close(self) -> None:
         for s in self.subs:

@@ -146,3 +146,61 @@ def test_bench_run_end_to_end(tmp_path, capsys):
     md = (out / "bench.md").read_text()
     assert "## Tracker ablation" in md and "Simulated perception" in md
     assert len(list((out / "plots").glob("*.png"))) == 5
+
+
+def test_trial_frames_by_count_or_by_time():
+    from services.bench.rate import trial_frames
+
+    assert trial_frames(2.0, None, 16, 24) == 16
+    assert trial_frames(2.0, None, None, 24) is None
+    # by time: the frames sent in that time, two keyframes at least
+    assert trial_frames(0.1, 240.0, 16, 24) == 25
+    assert trial_frames(0.5, 240.0, None, 24) == 120
+    assert trial_frames(0.02, 240.0, None, 1) == 5
+
+
+def test_rates_keep_three_digits():
+    from services.bench.rate import MIN_RATE_HZ, round_rate
+
+    assert round_rate(12.3456) == 12.3 and round_rate(0.045678) == 0.0457
+    assert round_rate(0.0) == MIN_RATE_HZ
+    trial, calls = fake_trial(0.03)
+    best, _ = search_rate(trial, 0.0125, 4)
+    assert calls[:3] == [0.0125, 0.025, 0.05] and best == 0.025
+
+
+def test_a_keyframe_vl_that_falls_behind_is_in_the_report():
+    res = _result()
+    slow = {"requested": 6, "answered": 6, "masks": 6, "failed": 0, "stale": 0, "timed_out": 0,
+            "request_hz": 0.025, "answer_hz": 0.0185, "latency_max_s": 90.0, "latency_mean_s": 60.0}  # fmt: skip
+    res["configs"][0]["rate"]["per_frame"]["trials"][0].update(keyframes=slow, sustained=False)
+    res["configs"][0]["random_weights"] = True
+    md = markdown(res)
+    assert "| 6/6 | 0.0185 / 0.025 | no |" in md
+    assert "Random weights in `synthetic`" in md
+
+
+def test_resume_scores_finished_maps_without_mapping_again(tmp_path, monkeypatch):
+    from services.bench import core
+
+    res = _result()
+    runs = res["configs"][0]["runs"]
+    for name, r in runs.items():
+        d = tmp_path / "maps" / f"synthetic-{name}"
+        d.mkdir(parents=True)
+        (d / "run.json").write_text(json.dumps({**r["run"], "backends": res["configs"][0]["backends"]}))
+    seq = tmp_path / "seq"
+    seq.mkdir()
+
+    def no_mapping(*a, **k):
+        raise AssertionError("a finished map was made again")
+
+    monkeypatch.setattr(core, "map_run", no_mapping)
+    monkeypatch.setattr(core, "evaluate_map", lambda map_dir, gt: runs[map_dir.name.split("-", 1)[1]]["eval"])
+    out = core.run_bench(tmp_path, sequence=seq, gt=seq, rate_trials=0, resume=True, progress=False)
+    (cfg,) = out["configs"]
+    assert {k: v["run"]["hz"] for k, v in cfg["runs"].items()} == {"3cm": 6.4, "5cm": 7.9, "per_frame": 3.1}
+    assert "## Tracker ablation" in (tmp_path / "bench.md").read_text()
+    # without resume the maps are made again
+    with pytest.raises(AssertionError, match="made again"):
+        core.run_bench(tmp_path, sequence=seq, gt=seq, rate_trials=0, progress=False)
