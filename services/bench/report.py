@@ -18,6 +18,15 @@ def _hz(x: Any) -> str:
     return "n/a" if x is None else f"{x:.3g}"
 
 
+def _lag(trial: dict) -> float | None:
+    """How far keyframe_vl's answers fell short of the request rate, in % (0 when they kept up)."""
+    kf = trial.get("keyframes") or {}
+    req, ans = kf.get("request_hz"), kf.get("answer_hz")
+    if not req or ans is None:
+        return None
+    return max(0.0, 100 * (1 - ans / req))
+
+
 def _gb(mb: Any) -> str:
     return "n/a" if mb is None else f"{mb / 1024:.2f} GB"
 
@@ -224,7 +233,10 @@ def plots(res: dict[str, Any], folder: Path) -> list[Path]:
             drops = [100 * (t["dropped"] or 0) / max(t["published"] or 1, 1) for t in trials]
             top = max(top, *xs)
             (line,) = a1.plot(xs, fused, marker=marker, label=f"{c['name']}, {mode}")
-            a2.plot(xs, drops, marker=marker, color=line.get_color(), label=f"{c['name']}, {mode}")
+            a2.plot(xs, drops, marker=marker, color=line.get_color(), label=f"{c['name']}, {mode}: frames dropped")
+            lag = [_lag(t) for t in trials]
+            if any(v is not None for v in lag):
+                a2.plot(xs, [v or 0.0 for v in lag], marker=marker, color=line.get_color(), linestyle=":", label=f"{c['name']}, {mode}: keyframe_vl behind")
             if info.get("max_sustained_hz"):
                 for a in (a1, a2):
                     a.axvline(info["max_sustained_hz"], color=line.get_color(), linestyle="--", linewidth=1)
@@ -233,9 +245,10 @@ def plots(res: dict[str, Any], folder: Path) -> list[Path]:
     a1.set_ylabel("frames fused per second (Hz)")
     a1.set_title("Map intake (dashed: highest rate sustained)")
     a2.set_xlabel("input rate (Hz)")
-    a2.set_ylabel("frames dropped (% of published)")
+    a2.set_ylabel("% (of frames published / of keyframe request rate)")
     a2.set_ylim(bottom=-2)
-    a2.set_title("Frames dropped by the source, tracker and fusion")
+    a2.set_title("Frames dropped, and how far keyframe answers lag requests")
+    a2.legend(fontsize=7)
     a1.legend(fontsize=8)
     save(fig, "tracker.png")
 
