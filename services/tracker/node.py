@@ -62,7 +62,6 @@ class TrackerNode:
         self._end: EndOfSequence | None = None
         self._end_at = 0.0
         self._last_index = -1
-        self.timeouts = 0
         self.keyframes = KeyframeLedger()
         self.frames = 0
         self.errors = 0
@@ -201,13 +200,12 @@ class TrackerNode:
         for k, t in list(self.pending.items()):
             if now - t > self.cfg.tracker.keyframe_timeout_s:
                 del self.pending[k]
-                self.timeouts += 1
                 self.keyframes.timed_out += 1
                 log.warning("keyframe %d: no masks after %.1f s (is keyframe_vl running?); propagating on", k, self.cfg.tracker.keyframe_timeout_s)
 
     def stats(self) -> dict:
         return {
-            "frames": self.frames, "errors": self.errors, "timeouts": self.timeouts, "pending_keyframes": len(self.pending),
+            "frames": self.frames, "errors": self.errors, "timeouts": self.keyframes.timed_out, "pending_keyframes": len(self.pending),
             "frames_in": self.subs[0].stats.as_dict(), "keyframes": self.keyframes.as_dict(),
         }  # fmt: skip
 
