@@ -31,11 +31,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from services.keyframe_vl.types import KeyframeImage, Masks  # noqa: E402
 from shared.codec import encode  # noqa: E402
 from shared.config import CodecConfig  # noqa: E402
 from shared.config.keyframe_vl import SegmenterConfig, VLEncoderConfig  # noqa: E402
 from shared.messages import KeyframeMasks, MaskFeatures  # noqa: E402
+from shared.perception import KeyframeImage, Masks  # noqa: E402
 
 log = logging.getLogger("bench.keyframe_vl")
 OUT = Path(__file__).resolve().parent / "out"

@@ -53,9 +53,9 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from services.fusion.graph import GraphReplica  # noqa: E402
 from shared.config import TrackGraphConfig  # noqa: E402
 from shared.config.base import save_resolved  # noqa: E402
+from shared.graph.scene import GraphReplica  # noqa: E402
 from shared.messages.graph import GraphDelta, GraphSnapshot, SegmentNode, SnapshotRequest  # noqa: E402
 from shared.messages.rpc import EmbedReply, EmbedRequest  # noqa: E402
 from shared.topics import Topics  # noqa: E402

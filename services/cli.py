@@ -86,7 +86,7 @@ def _cmd_source(args: argparse.Namespace) -> int:
     if args.connect:
         update["transport"] = cfg.transport.model_copy(update={"connect": args.connect})
     cfg = type(cfg).model_validate({**cfg.model_dump(), **{k: v.model_dump() for k, v in update.items()}})
-    stats = run_source(cfg, args.sequence, wait_subscribers_s=args.wait)
+    stats = run_source(cfg, args.sequence, wait_subscribers_s=args.wait, status_file=args.status_file)
     out = {"published": stats.published, "dropped": stats.dropped, "seconds": round(stats.seconds, 3)}
     print(json.dumps(out) if args.json else f"published {stats.published} frames, dropped {stats.dropped}, in {stats.seconds:.1f} s")
     return 0
@@ -215,7 +215,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         from services.mapping import prepare_config
 
         cfg = prepare_config(cfg, args.sequence)
-    serve(args.service, cfg, out=args.out, resume=args.resume, exit_at_end=args.exit_at_end)
+    serve(args.service, cfg, out=args.out, resume=args.resume, exit_at_end=args.exit_at_end, status_file=args.status_file)
     return 0
 
 
@@ -307,7 +307,7 @@ def _cmd_query(args: argparse.Namespace) -> int:
 
 
 def _cmd_view(args: argparse.Namespace) -> int:
-    from services.fusion.store import MapStore
+    from shared.graph.store import MapStore
 
     map_dir = args.map_dir
     if not (map_dir / "graph").is_dir():
@@ -447,6 +447,7 @@ def build_parser() -> argparse.ArgumentParser:
     so.add_argument("--max-frames", type=int, metavar="N")
     so.add_argument("--connect", action="append", metavar="ENDPOINT", help="router endpoint(s)")
     so.add_argument("--wait", type=float, default=30.0, metavar="S", help="lossless: wait this long for a subscriber")
+    so.add_argument("--status-file", type=Path, metavar="FILE", help="write the last ServiceStatus report here as JSON at stop")
     so.add_argument("--json", action="store_true")
     so.set_defaults(func=_cmd_source)
 
@@ -518,6 +519,7 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--resume", action="store_true", help="fusion: continue from the last snapshot in MAP_DIR")
     sv.add_argument("--exit-at-end", action="store_true", help="fusion: stop once the replayed sequence is mapped")
     sv.add_argument("--sequence", type=Path, metavar="SEQ_DIR", help="a synthetic sequence whose ground truth the simulated backends use")
+    sv.add_argument("--status-file", type=Path, metavar="FILE", help="write the last ServiceStatus report here as JSON at stop")
     sv.set_defaults(func=_cmd_serve)
 
     vw = sub.add_parser("view", help="a Rerun recording (.rrd) of a saved map, optional query hits and PNG renders")

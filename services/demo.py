@@ -144,11 +144,11 @@ def run_demo(out: Path, *, preset: str = "demo", seed: int = 0, config: Path | N
 
 
 def _finish(out: Path, seq: Path, map_dir: Path, plan, cfg_path: Path, why: str, queries: list[dict], summary: dict, timings: dict) -> dict[str, Any]:
-    from services.fusion.store import MapStore
     from services.query.evaluate import MapTruth, eval_queries
     from services.viewer.recording import write_map_recording
     from services.viewer.render import render_map_pictures
     from shared.eval import eval_instances, eval_openlex3d
+    from shared.graph.store import MapStore
 
     truth = MapTruth(map_dir, seq)
     for q in queries:

@@ -69,8 +69,8 @@ def run_map(
 ) -> dict[str, Any]:
     """Map a recorded sequence; writes the map folder and returns the ``run.json`` summary."""
     from services.fusion.core import FusionCore
-    from services.fusion.store import MapStore
     from shared.eval.track_io import TrackWriter
+    from shared.graph.store import MapStore
 
     seq_dir, out = Path(seq_dir), Path(out)
     cfg = prepare_config(cfg, seq_dir)

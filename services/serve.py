@@ -1,5 +1,9 @@
 """``trackgraph serve SERVICE``: run one service node in this process until SIGINT/SIGTERM
-(or, for fusion, until the sequence it maps has ended when ``exit_at_end``)."""
+(or, for fusion, until the sequence it maps has ended when ``exit_at_end``).
+
+Every node has a ``book`` (its session's :class:`~shared.runtime.status.StatusBook`) and a
+``bus``; this loop publishes the book as a ``ServiceStatus`` on ``status/<service>`` once a
+second and once at stop, and writes the last report to ``status_file``."""
 
 from __future__ import annotations
 
@@ -57,12 +61,17 @@ def serve(
     resume: bool = False,
     exit_at_end: bool = False,
     stop: threading.Event | None = None,
+    status_file: Path | None = None,
 ) -> None:
     stop = stop or threading.Event()
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: stop.set())
+    from shared.runtime.status import StatusReporter
+    from shared.topics import Topics
+
     node = build_node(service, cfg, out=out, resume=resume)
+    reporter = StatusReporter(node.book, node.bus, Topics(cfg.robot_id).status(service))
     log.info("%s serving as robot %s", service, cfg.robot_id)
     try:
         while not stop.wait(1.0):
@@ -70,5 +79,7 @@ def serve(
                 break
             log.debug("%s: %s", service, node.stats())
     finally:
-        node.close()
+        node.close(keep_bus=True)
+        reporter.stop(status_file)
+        node.bus.close()
         log.info("%s stopped: %s", service, node.stats())

@@ -84,6 +84,16 @@ class Topics:
             raise ValueError(f"unknown service {service!r}; expected one of {', '.join(SERVICES)}")
         return f"{self.root}/alive/{service}"
 
+    def status(self, service: str) -> str:
+        """Key of one service's :class:`~shared.messages.status.ServiceStatus` reports."""
+        if service not in SERVICES:
+            raise ValueError(f"unknown service {service!r}; expected one of {', '.join(SERVICES)}")
+        return f"{self.root}/status/{service}"
+
+    @property
+    def status_all(self) -> str:
+        return f"{self.root}/status/*"
+
     @property
     def alive_all(self) -> str:
         return f"{self.root}/alive/*"

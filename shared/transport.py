@@ -24,6 +24,7 @@ from pydantic import BaseModel
 from shared.codec import CodecError, decode, encode
 from shared.config.transport import CodecConfig, TransportConfig
 from shared.messages.base import Envelope
+from shared.runtime.bus import BusError
 
 log = logging.getLogger(__name__)
 
@@ -31,7 +32,7 @@ M = TypeVar("M", bound=BaseModel)
 R = TypeVar("R", bound=BaseModel)
 
 
-class TransportError(RuntimeError):
+class TransportError(BusError):
     """A request found no answer in time, or the remote side answered with an error."""
 
 
@@ -81,6 +82,21 @@ class LinkStats:
     def as_dict(self) -> dict:
         with self._lock:
             return {k: getattr(self, k) for k in ("received", "rejected", "dropped", "published", "handler_errors", "last_error")}
+
+
+def robot_of_key(key: str) -> str | None:
+    """The robot id in a ``trackgraph/<robot>/...`` key, or None for other keys (and wildcards)."""
+    parts = key.split("/")
+    if len(parts) >= 2 and parts[0] == "trackgraph" and "*" not in parts[1] and "$" not in parts[1]:
+        return parts[1]
+    return None
+
+
+def check_robot(key: str, robot: str | None, env: Envelope) -> None:
+    """Refuse an envelope whose ``robot`` is not the robot of the key it came on: one robot's
+    frames must never reach another's map because a client mislabelled them."""
+    if robot is not None and env.robot_id != robot:
+        raise CodecError(f"{type(env.body).__name__} on {key} claims robot {env.robot_id!r}; this key is robot {robot!r}")
 
 
 class _RateLimitedLog:
@@ -151,6 +167,9 @@ class TypedPublisher(Generic[M]):
         return True
 
     def close(self) -> None:
+        if getattr(self, "_closed", False):
+            return
+        self._closed = True
         self._pub.undeclare()
 
 
@@ -178,10 +197,14 @@ class TypedSubscriber(Generic[M]):
         capacity: int = 64,
         callback: Callable[[Envelope[M]], None] | None = None,
         name: str | None = None,
+        on_drop: Callable[[], None] | None = None,
+        on_reject: Callable[[str], None] | None = None,
     ) -> None:
         if capacity < 1:
             raise ValueError("capacity must be at least 1")
         self.key, self.msg_type, self.policy, self.capacity = key, msg_type, policy, capacity
+        self.robot = robot_of_key(key)
+        self._on_drop, self._on_reject = on_drop, on_reject
         self.codec = codec or CodecConfig()
         self.stats = LinkStats()
         self._buf: collections.deque[bytes] = collections.deque()
@@ -198,15 +221,20 @@ class TypedSubscriber(Generic[M]):
         with self._cv:
             if self._closed:
                 return
-            if len(self._buf) >= self.capacity:
+            dropped = len(self._buf) >= self.capacity
+            if dropped:
                 self.stats.add("dropped")
                 if self.policy == "latest":
                     self._buf.popleft()
-                else:
-                    _warn.warn(self.key, f"subscriber queue full ({self.capacity}): message dropped")
-                    return
-            self._buf.append(data)
+                    self._buf.append(data)
+            else:
+                self._buf.append(data)
             self._cv.notify_all()
+        if dropped:
+            if self.policy == "fifo":
+                _warn.warn(self.key, f"subscriber queue full ({self.capacity}): message dropped")
+            if self._on_drop is not None:
+                self._on_drop()
 
     def recv(self, timeout: float | None = None) -> Envelope[M] | None:
         """Next valid message, or None on timeout or close. Invalid ones are counted and skipped."""
@@ -224,9 +252,12 @@ class TypedSubscriber(Generic[M]):
                 self._cv.notify_all()
             try:
                 env = decode(data, self.msg_type, self.codec)
+                check_robot(self.key, self.robot, env)
             except CodecError as exc:
                 self.stats.add("rejected", error=str(exc))
                 _warn.warn(self.key, f"rejected payload of {len(data)} bytes: {exc}")
+                if self._on_reject is not None:
+                    self._on_reject(str(exc))
                 continue
             self.stats.add("received")
             return env
@@ -248,6 +279,8 @@ class TypedSubscriber(Generic[M]):
 
     def close(self) -> None:
         with self._cv:
+            if self._closed:
+                return
             self._closed = True
             self._cv.notify_all()
         self._sub.undeclare()
@@ -327,6 +360,7 @@ class TypedQueryable(Generic[M, R]):
         data = payload.to_bytes()
         try:
             env = decode(data, self.request_type, self.codec)
+            check_robot(self.key, robot_of_key(self.key), env)
         except CodecError as exc:
             self.stats.add("rejected", error=str(exc))
             _warn.warn(self.key, f"rejected request: {exc}")
@@ -425,3 +459,60 @@ class LivelinessWatcher:
 
     def close(self) -> None:
         self._sub.undeclare()
+
+
+class ZenohBus:
+    """The :class:`shared.runtime.bus.Bus` of a service in its own process: every endpoint
+    is a typed Zenoh publisher, subscriber or queryable on ``session``."""
+
+    def __init__(self, session: zenoh.Session, robot_id: str, codec: CodecConfig | None = None, *, own_session: bool = False) -> None:
+        self.session, self.robot_id = session, robot_id
+        self.codec = codec or CodecConfig()
+        self._own = own_session
+        self._endpoints: list = []
+        self._seq = 0
+        self._lock = threading.Lock()
+
+    @classmethod
+    def open(cls, cfg: TransportConfig, robot_id: str) -> ZenohBus:
+        """A bus on a new session of ``cfg``; :meth:`close` closes it."""
+        return cls(open_session(cfg), robot_id, cfg.codec, own_session=True)
+
+    def publisher(self, key: str, msg_type: type[M], *, reliable: bool = True) -> TypedPublisher[M]:
+        pub = TypedPublisher(self.session, key, msg_type, robot_id=self.robot_id, codec=self.codec, reliable=reliable)
+        self._endpoints.append(pub)
+        return pub
+
+    def subscribe(self, key: str, msg_type: type[M], callback: Callable[[Envelope[M]], None], *, policy: Literal["fifo", "latest"] = "fifo",
+                  capacity: int = 64, name: str | None = None, on_drop: Callable[[], None] | None = None,
+                  on_reject: Callable[[str], None] | None = None) -> TypedSubscriber[M]:  # fmt: skip
+        sub = TypedSubscriber(self.session, key, msg_type, codec=self.codec, policy=policy, capacity=capacity,
+                              callback=callback, name=name, on_drop=on_drop, on_reject=on_reject)  # fmt: skip
+        self._endpoints.append(sub)
+        return sub
+
+    def serve(self, key: str, request_type: type[M], reply_type: type[R], handler: Callable[[Envelope[M]], R], *,
+              workers: int = 1, capacity: int = 256) -> TypedQueryable[M, R]:  # fmt: skip
+        q = TypedQueryable(self.session, key, request_type, reply_type, handler, robot_id=self.robot_id, codec=self.codec,
+                           workers=workers, capacity=capacity)  # fmt: skip
+        self._endpoints.append(q)
+        return q
+
+    def request(self, key: str, body: BaseModel, reply_type: type[R], *, timeout: float) -> R:
+        with self._lock:
+            seq, self._seq = self._seq, self._seq + 1
+        return request(self.session, key, body, reply_type, robot_id=self.robot_id, timeout=timeout, codec=self.codec, seq=seq).body
+
+    def declare_alive(self, key: str) -> zenoh.LivelinessToken:
+        return declare_alive(self.session, key)
+
+    def close(self) -> None:
+        """Close every endpoint still open (each close is idempotent), then an owned session."""
+        for ep in reversed(self._endpoints):
+            try:
+                ep.close()
+            except Exception:  # noqa: BLE001 - already closed, or the session went first
+                log.debug("closing %r failed", ep, exc_info=True)
+        self._endpoints.clear()
+        if self._own:
+            self.session.close()

@@ -13,13 +13,13 @@ from typing import Annotated, Any
 
 import numpy as np
 
-from services.fusion.graph import SceneGraph
 from services.fusion.hypotheses import confidence
 from services.fusion.rooms import HierarchyBuilder
 from services.fusion.segments import SegmentLayer
 from services.fusion.tsdf import HypothesisTSDF
 from services.fusion.types import HypothesisMesh, TrackState
 from shared.config.fusion import FusionConfig
+from shared.graph.scene import SceneGraph
 from shared.messages.frames import TrackedFrame
 from shared.messages.graph import GraphDelta, GraphSnapshot, MeshChunk
 from shared.messages.keyframes import TrackFeatures

@@ -16,9 +16,9 @@ import time
 from pathlib import Path
 
 from services.fusion.core import FusionCore
-from services.fusion.store import MapStore, StoreError
 from shared.config.base import save_resolved
 from shared.config.root import TrackGraphConfig
+from shared.graph.store import MapStore, StoreError
 from shared.messages.base import Envelope
 from shared.messages.frames import EndOfSequence, FrameAck, TrackedFrame
 from shared.messages.graph import GraphDelta, GraphSnapshot, SnapshotRequest

@@ -33,7 +33,6 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from services.fusion.graph import PlaceGraph
 from services.fusion.places import (
     FreeSpaceMap,
     FreeSpaceParams,
@@ -42,6 +41,7 @@ from services.fusion.places import (
     geodesic_owner,
 )
 from shared.config.fusion import GraphConfig
+from shared.graph.scene import PlaceGraph
 from shared.messages.graph import PlaceNode, RoomNode
 
 log = logging.getLogger(__name__)

@@ -14,10 +14,10 @@ import numpy as np
 from services.keyframe_vl.embedder import Embedder
 from services.keyframe_vl.encoders import make_vl_encoder
 from services.keyframe_vl.segmenters import make_segmenter
-from services.keyframe_vl.types import KeyframeImage, Masks, Segmenter, VLEncoder
 from shared.config.keyframe_vl import KeyframeVLConfig
 from shared.messages.keyframes import KeyframeMasks, KeyframeRequest, MaskFeatures
 from shared.messages.rpc import EmbedReply, EmbedRequest
+from shared.perception import KeyframeImage, Masks, Segmenter, VLEncoder
 
 log = logging.getLogger(__name__)
 

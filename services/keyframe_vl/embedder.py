@@ -11,8 +11,8 @@ from typing import Annotated
 
 import numpy as np
 
-from services.keyframe_vl.types import VLEncoder
 from shared.messages.rpc import EmbedReply, EmbedRequest
+from shared.perception import VLEncoder
 
 
 class TextCache:

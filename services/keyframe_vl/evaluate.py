@@ -23,8 +23,8 @@ def eval_segmenter(seq_dir: Path, cfg: TrackGraphConfig, *, every: int | None = 
     (keyframe, object) pairs; ``objects`` counts them."""
     from services.keyframe_vl.core import resolve_device
     from services.keyframe_vl.segmenters import make_segmenter
-    from services.keyframe_vl.types import KeyframeImage
     from services.mapping import prepare_config
+    from shared.perception import KeyframeImage
 
     cfg = prepare_config(cfg, Path(seq_dir))
     reader = open_sequence(seq_dir, cfg.source.dataset, cfg.source)

@@ -1,7 +1,7 @@
 """query node: ``graph/delta`` in, the ``query`` queryable out; ``graph/snapshot`` asked on a
 gap or a late join; queries embedded through ``vl/embed`` (or a local encoder).
 
-The replica (``services.query.sync``) is kept on the delta subscriber's thread; after each
+The replica (``shared.graph.sync``) is kept on the delta subscriber's thread; after each
 consistent change a new :class:`QueryIndex` is built and swapped in, so the queryable's
 worker threads answer from whole graph versions without locking. Snapshot requests run on
 a thread of their own, retried with backoff while fusion is not there.
@@ -14,11 +14,11 @@ import threading
 
 import numpy as np
 
-from services.fusion.graph import GraphReplica
 from services.keyframe_vl.embedder import Embedder, TextCache
 from services.query.core import QueryEngine, QueryError, QueryIndex
-from services.query.sync import ReplicaSync
 from shared.config.root import TrackGraphConfig
+from shared.graph.scene import GraphReplica
+from shared.graph.sync import ReplicaSync
 from shared.messages.base import Envelope
 from shared.messages.graph import GraphDelta, GraphSnapshot, SnapshotRequest
 from shared.messages.rpc import EmbedReply, EmbedRequest, QueryReply, QueryRequest

@@ -18,7 +18,7 @@ from shared.messages.rpc import EmbedRequest, QueryReply, QueryRequest
 
 def load_index(map_dir: Path, min_view_share: float = 0.0) -> QueryIndex:
     """The query index of the newest good snapshot in ``MAP_DIR/graph``."""
-    from services.fusion.store import MapStore, StoreError
+    from shared.graph.store import MapStore, StoreError
 
     store = MapStore(Path(map_dir) / "graph")
     if store.latest_name() is None:

@@ -75,7 +75,6 @@ from typing import Annotated
 import numpy as np
 import torch
 
-from services.keyframe_vl.types import Masks
 from services.tracker.association import (
     associate_iou,
     label_mask_iou,
@@ -100,6 +99,7 @@ from services.tracker.tracks import TrackBook
 from shared.config.tracker import TrackerConfig
 from shared.messages.frames import Frame, TrackedFrame, TrackObservation
 from shared.messages.keyframes import KeyframeRequest, TrackFeature, TrackFeatures
+from shared.perception import Masks
 
 log = logging.getLogger(__name__)
 

@@ -16,12 +16,12 @@ import queue
 import threading
 import time
 
-from services.keyframe_vl.types import Masks
 from services.tracker.pace import KeyframeLedger
 from shared.config.root import TrackGraphConfig
 from shared.messages.base import Envelope
 from shared.messages.frames import EndOfSequence, Frame, FrameAck, TrackedFrame
 from shared.messages.keyframes import KeyframeMasks, KeyframeRequest, MaskFeatures, TrackFeatures
+from shared.perception import Masks
 from shared.topics import Topics
 from shared.transport import TypedPublisher, TypedSubscriber, declare_alive, open_session
 

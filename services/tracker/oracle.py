@@ -10,9 +10,9 @@ from typing import Annotated
 
 import numpy as np
 
-from services.keyframe_vl.types import KeyframeImage, Masks, VLEncoder
 from shared.messages.frames import Frame, TrackedFrame, TrackObservation
 from shared.messages.keyframes import TrackFeature, TrackFeatures
+from shared.perception import KeyframeImage, Masks, VLEncoder
 
 DINO_DIM = 64
 

@@ -18,7 +18,6 @@ from pathlib import Path
 
 import numpy as np
 
-from services.fusion.graph import ApplyResult, GraphReplica
 from services.viewer.recording import (
     log_snapshot,
     log_tracked_frame,
@@ -27,6 +26,7 @@ from services.viewer.recording import (
     new_recording,
 )
 from shared.config.root import TrackGraphConfig
+from shared.graph.scene import ApplyResult, GraphReplica
 from shared.messages.base import Envelope
 from shared.messages.frames import TrackedFrame
 from shared.messages.graph import GraphDelta, GraphSnapshot, SnapshotRequest

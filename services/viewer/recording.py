@@ -368,7 +368,7 @@ def write_map_recording(
 
     Written under a temporary name and renamed, so a viewer never opens a half file.
     """
-    from services.fusion.store import MapStore
+    from shared.graph.store import MapStore
 
     map_dir, out_rrd = Path(map_dir), Path(out_rrd)
     store = MapStore(map_dir / "graph")

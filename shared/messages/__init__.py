@@ -1,4 +1,4 @@
-"""One pydantic model per wire message (DESIGN.md section 2)."""
+"""One pydantic model per wire message; ``docs/wire.md`` is generated from them."""
 
 from shared.messages.base import REGISTRY, Envelope, Message, register
 from shared.messages.frames import EndOfSequence, Frame, FrameAck, TrackedFrame, TrackObservation
@@ -20,6 +20,7 @@ from shared.messages.keyframes import (
     TrackFeatures,
 )
 from shared.messages.rpc import EmbedReply, EmbedRequest, QueryHit, QueryReply, QueryRequest
+from shared.messages.status import InputCounters, ServiceStatus
 
 __all__ = [
     "REGISTRY",
@@ -29,6 +30,7 @@ __all__ = [
     "EndOfSequence",
     "Envelope",
     "Frame",
+    "InputCounters",
     "FrameAck",
     "GraphDelta",
     "GraphSnapshot",
@@ -43,6 +45,7 @@ __all__ = [
     "QueryRequest",
     "RoomNode",
     "SegmentNode",
+    "ServiceStatus",
     "SnapshotRequest",
     "TrackFeature",
     "TrackFeatures",

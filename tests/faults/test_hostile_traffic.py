@@ -169,7 +169,7 @@ def test_hostile_traffic_is_counted_and_harms_nothing(small, tmp_path, free_port
     assert growth_idle < 150, f"RSS grew {growth_idle:.0f} MB under hostile traffic alone"
 
     # the valid stream is untouched: the map is the in-process one
-    from services.fusion.store import MapStore
+    from shared.graph.store import MapStore
 
     want = MapStore(tmp_path / "in_process" / "graph").load().snapshot
     assert [(s.id, s.tracks) for s in got.segments] == [(s.id, s.tracks) for s in want.segments]

@@ -147,7 +147,7 @@ def test_keyframe_vl_killed_and_back_50_frames_later(small, tmp_path, free_port)
 def test_fusion_killed_resumes_and_counts_what_it_lost(small, tmp_path, free_port):
     """kill -9 fusion mid-run: the Supervisor restarts it with --resume, the source waits for
     it, and the map holds every frame but those after the last snapshot, which are counted."""
-    from services.fusion.store import MapStore
+    from shared.graph.store import MapStore
 
     out = tmp_path / "map"
     interval_s = 2.0

@@ -70,7 +70,7 @@ def test_distributed_lossless_equals_in_process(small, tmp_path):
         stop.set()
         router.join(timeout=10)
 
-    from services.fusion.store import MapStore
+    from shared.graph.store import MapStore
 
     want = MapStore(tmp_path / "in_process" / "graph").load().snapshot
     assert reference["segments"] == len(got.segments)

@@ -107,10 +107,10 @@ def small(tmp_path_factory):
 @pytest.mark.slow
 @pytest.mark.timeout(900)
 def test_whole_system_as_processes_equals_in_process_and_survives_a_killed_query_service(small, tmp_path):
-    from services.fusion.store import MapStore
     from services.mapping import run_map
     from services.query.client import QueryClient
     from services.query.offline import OfflineQueries
+    from shared.graph.store import MapStore
     from shared.messages.rpc import QueryRequest
 
     services = [

@@ -14,11 +14,11 @@ import pytest
 
 from services.cli import main
 from services.fusion.core import FusionCore
-from services.fusion.store import MapStore
 from services.mapping import build_tracker, prepare_config
 from shared.config import TrackGraphConfig
 from shared.datasets import open_sequence
 from shared.eval import eval_instances
+from shared.graph.store import MapStore
 
 pytestmark = pytest.mark.slow
 

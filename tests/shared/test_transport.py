@@ -12,7 +12,7 @@ import pytest
 from shared.codec import encode
 from shared.config import TransportConfig
 from shared.geometry import Intrinsics
-from shared.messages import EmbedReply, EmbedRequest, Frame, QueryReply, QueryRequest
+from shared.messages import EmbedReply, EmbedRequest, Frame, FrameAck, QueryReply, QueryRequest
 from shared.topics import Topics
 from shared.transport import (
     LivelinessWatcher,
@@ -148,16 +148,19 @@ def test_queryable_replies_and_rejects(pair):
 
     q = TypedQueryable(a, key, EmbedRequest, EmbedReply, handler, robot_id="robot0")
     try:
-        assert _wait_matched(lambda: _try(lambda: request(b, key, EmbedRequest(text="x"), EmbedReply, robot_id="c", timeout=0.5)))
-        rep = request(b, key, EmbedRequest(text="chair"), EmbedReply, robot_id="c", timeout=2)
+        assert _wait_matched(lambda: _try(lambda: request(b, key, EmbedRequest(text="x"), EmbedReply, robot_id="robot0", timeout=0.5)))
+        rep = request(b, key, EmbedRequest(text="chair"), EmbedReply, robot_id="robot0", timeout=2)
         np.testing.assert_array_equal(rep.body.embedding, np.full(4, 0.5, np.float32))
         with pytest.raises(TransportError, match="bad request"):
-            request(b, key, QueryRequest(text="chair"), QueryReply, robot_id="c", timeout=2)
+            request(b, key, QueryRequest(text="chair"), QueryReply, robot_id="robot0", timeout=2)
         with pytest.raises(TransportError, match="internal error.*exploded"):
-            request(b, key, EmbedRequest(text="boom"), EmbedReply, robot_id="c", timeout=2)
+            request(b, key, EmbedRequest(text="boom"), EmbedReply, robot_id="robot0", timeout=2)
         # Still serving after the failures.
-        assert request(b, key, EmbedRequest(text="lamp"), EmbedReply, robot_id="c", timeout=2).body.model == "test"
-        assert q.stats.rejected == 1 and q.stats.handler_errors == 1
+        assert request(b, key, EmbedRequest(text="lamp"), EmbedReply, robot_id="robot0", timeout=2).body.model == "test"
+        # A request that claims another robot is refused, named, and counted.
+        with pytest.raises(TransportError, match="claims robot 'robot1'"):
+            request(b, key, EmbedRequest(text="chair"), EmbedReply, robot_id="robot1", timeout=2)
+        assert q.stats.rejected == 2 and q.stats.handler_errors == 1
     finally:
         q.close()
 
@@ -200,3 +203,24 @@ def _try(fn) -> bool:
         return True
     except TransportError:
         return False
+
+
+def test_envelope_from_another_robot_is_refused_and_counted(pair):
+    a, b = pair
+    topics = Topics("robot0")
+    rejected: list[str] = []
+    sub = TypedSubscriber(b, topics.frame_ack, FrameAck, on_reject=rejected.append)
+    wrong = TypedPublisher(a, topics.frame_ack, FrameAck, robot_id="robot1")
+    right = TypedPublisher(a, topics.frame_ack, FrameAck, robot_id="robot0")
+    try:
+        assert _wait_matched(right.has_subscribers)
+        wrong.put(FrameAck(frame_index=1, service="tracker"))
+        right.put(FrameAck(frame_index=2, service="tracker"))
+        env = sub.recv(timeout=5)
+        assert env is not None and env.body.frame_index == 2
+        assert sub.stats.rejected == 1
+        assert "claims robot 'robot1'" in rejected[0] and "robot 'robot0'" in rejected[0]
+    finally:
+        wrong.close()
+        right.close()
+        sub.close()

@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import logging
 
-from services.keyframe_vl.types import VLEncoder
 from shared.config.keyframe_vl import VLEncoderConfig
+from shared.perception import VLEncoder
 
 log = logging.getLogger(__name__)
 

@@ -28,7 +28,7 @@ from PIL import Image
 from services.keyframe_vl.crops import batched, padded_crops
 from services.keyframe_vl.encoders.common import check_rgb, unit_rows
 from services.keyframe_vl.encoders.weights import ONNX_IMAGE, ONNX_META, ONNX_TEXT, resolve_onnx_dir
-from services.keyframe_vl.types import KeyframeImage, Masks
+from shared.perception import KeyframeImage, Masks
 
 log = logging.getLogger(__name__)
 

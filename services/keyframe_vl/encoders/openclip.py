@@ -23,7 +23,7 @@ from PIL import Image
 from services.keyframe_vl.crops import batched, padded_crops
 from services.keyframe_vl.encoders.common import check_rgb, unit_rows
 from services.keyframe_vl.encoders.weights import resolve_checkpoint
-from services.keyframe_vl.types import KeyframeImage, Masks
+from shared.perception import KeyframeImage, Masks
 
 log = logging.getLogger(__name__)
 

@@ -37,7 +37,7 @@ import numpy as np
 
 from services.keyframe_vl.crops import mask_box
 from services.keyframe_vl.encoders.common import check_rgb, unit_rows
-from services.keyframe_vl.types import KeyframeImage, Masks
+from shared.perception import KeyframeImage, Masks
 
 log = logging.getLogger(__name__)
 

@@ -9,8 +9,8 @@ stays light.
 
 from __future__ import annotations
 
-from services.keyframe_vl.types import Segmenter
 from shared.config.keyframe_vl import SegmenterConfig
+from shared.perception import Segmenter
 
 BACKENDS = ("fastsam", "fastsam_onnx", "classical", "simulated")
 

@@ -10,8 +10,8 @@ from typing import Annotated
 
 import numpy as np
 
-from services.keyframe_vl.types import Masks
 from shared.config.keyframe_vl import SegmenterConfig
+from shared.perception import Masks
 
 log = logging.getLogger(__name__)
 

@@ -33,9 +33,9 @@ from services.keyframe_vl.segmenters.graph import (
     boundary_contrast,
     felzenszwalb,
 )
-from services.keyframe_vl.types import KeyframeImage, Masks
 from shared.config.keyframe_vl import ClassicalSegmenterConfig, SegmenterConfig
 from shared.geometry import Intrinsics
+from shared.perception import KeyframeImage, Masks
 
 log = logging.getLogger(__name__)
 

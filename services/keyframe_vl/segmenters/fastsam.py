@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from services.keyframe_vl.segmenters.base import check_image, finalize, require_file
-from services.keyframe_vl.types import KeyframeImage, Masks
 from shared.config.keyframe_vl import SegmenterConfig
+from shared.perception import KeyframeImage, Masks
 
 log = logging.getLogger(__name__)
 

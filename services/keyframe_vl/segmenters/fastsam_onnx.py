@@ -14,8 +14,8 @@ import numpy as np
 from services.keyframe_vl.segmenters import yolo_post
 from services.keyframe_vl.segmenters.base import check_image, finalize, require_file
 from services.keyframe_vl.segmenters.fastsam import MAX_DETECTIONS, WEIGHTS_HINT, load_fastsam
-from services.keyframe_vl.types import KeyframeImage, Masks
 from shared.config.keyframe_vl import SegmenterConfig
+from shared.perception import KeyframeImage, Masks
 
 log = logging.getLogger(__name__)
 

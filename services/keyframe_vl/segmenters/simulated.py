@@ -17,8 +17,8 @@ import numpy as np
 from scipy import ndimage
 
 from services.keyframe_vl.segmenters.base import check_image, finalize
-from services.keyframe_vl.types import KeyframeImage, Masks
 from shared.config.keyframe_vl import SegmenterConfig, SimulatedSegmenterNoise
+from shared.perception import KeyframeImage, Masks
 
 log = logging.getLogger(__name__)
 

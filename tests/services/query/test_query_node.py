@@ -13,12 +13,12 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 
-from services.fusion.graph import GraphReplica
 from services.query.client import QueryClient, QueryRefused
 from services.query.node import QueryNode
 from services.router import run_router
 from shared.codec import encode
 from shared.config import TrackGraphConfig
+from shared.graph.scene import GraphReplica
 from shared.messages.graph import GraphDelta, GraphSnapshot, SegmentNode, SnapshotRequest
 from shared.messages.rpc import EmbedReply, EmbedRequest, QueryRequest
 from shared.topics import Topics

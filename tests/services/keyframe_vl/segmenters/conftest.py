@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 from seg_room import render_room
 
-from services.keyframe_vl.types import KeyframeImage
+from shared.perception import KeyframeImage
 
 
 @pytest.fixture(scope="session")

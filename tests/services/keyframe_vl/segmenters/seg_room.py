@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.keyframe_vl.types import KeyframeImage
 from shared.geometry import Intrinsics
+from shared.perception import KeyframeImage
 
 # (min corner, max corner, RGB) in the camera frame: x right, y down, z forward; floor at y = 1.2.
 BOXES = [

@@ -87,8 +87,8 @@ def _run_synth():
 
 @pytest.fixture(scope="module")
 def small_preset_frames(tmp_path_factory):
-    from services.keyframe_vl.types import KeyframeImage
     from shared.datasets import open_sequence
+    from shared.perception import KeyframeImage
 
     out = tmp_path_factory.mktemp("synth") / "small"
     _run_synth()("small", 0, out, overrides={"camera": {"frames": 12}})

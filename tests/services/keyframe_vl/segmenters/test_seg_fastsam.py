@@ -13,8 +13,8 @@ import pytest
 from services.keyframe_vl.segmenters import make_segmenter
 from services.keyframe_vl.segmenters.fastsam import import_ultralytics
 from services.keyframe_vl.segmenters.fastsam_onnx import export_fastsam_onnx
-from services.keyframe_vl.types import KeyframeImage, Masks
 from shared.config.keyframe_vl import SegmenterConfig
+from shared.perception import KeyframeImage, Masks
 
 if importlib.util.find_spec("ultralytics") is None or importlib.util.find_spec("onnxruntime") is None:
     pytest.skip("needs ultralytics and onnxruntime", allow_module_level=True)

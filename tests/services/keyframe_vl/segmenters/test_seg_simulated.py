@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from services.keyframe_vl.segmenters import make_segmenter
-from services.keyframe_vl.types import KeyframeImage
 from shared.config.keyframe_vl import SegmenterConfig, SimulatedSegmenterNoise
 from shared.eval.segmenter import mean_best_iou
+from shared.perception import KeyframeImage
 
 ZERO = SimulatedSegmenterNoise(
     boundary_jitter_px=0, split_prob=0, merge_prob=0, miss_below_px=0, spurious_per_frame=0

@@ -8,10 +8,10 @@ import json
 import numpy as np
 import pytest
 
-from services.fusion import store as store_mod
-from services.fusion.graph import PlaceGraph, SceneGraph
-from services.fusion.store import DiskFull, MapStore, SnapshotCorrupt, StoreError
 from shared.codec import encode
+from shared.graph import store as store_mod
+from shared.graph.scene import PlaceGraph, SceneGraph
+from shared.graph.store import DiskFull, MapStore, SnapshotCorrupt, StoreError
 from shared.messages.graph import MeshChunk, PlaceNode, RoomNode, SegmentNode
 
 
@@ -201,7 +201,7 @@ def test_manifest_lists_sizes_and_hashes(store):
 
 
 def test_disk_full_inside_spark_dsg(tmp_path, monkeypatch):
-    dsg = pytest.importorskip("services.fusion.dsg")
+    dsg = pytest.importorskip("shared.graph.dsg")
     pytest.importorskip("spark_dsg")
     store = MapStore(tmp_path / "map")
     store.save(_graph(seed=1).snapshot())

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.fusion.graph import PlaceGraph, SceneGraph
 from shared.codec import encode
+from shared.graph.scene import PlaceGraph, SceneGraph
 from shared.messages.graph import MeshChunk, PlaceNode, RoomNode, SegmentNode
 
 sd = pytest.importorskip("spark_dsg")
-dsg = pytest.importorskip("services.fusion.dsg")
+dsg = pytest.importorskip("shared.graph.dsg")
 
 
 def _graph(gallery_dtype=np.float32, with_mesh=True):

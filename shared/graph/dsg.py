@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from services.fusion.graph import BUILDING_ID
+from shared.graph.scene import BUILDING_ID
 from shared.messages.graph import Edge, GraphSnapshot, MeshChunk, PlaceNode, RoomNode, SegmentNode
 
 if TYPE_CHECKING:

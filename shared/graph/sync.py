@@ -13,7 +13,7 @@ import logging
 import threading
 from collections.abc import Callable
 
-from services.fusion.graph import ApplyResult, GraphReplica
+from shared.graph.scene import ApplyResult, GraphReplica
 from shared.messages.graph import GraphDelta, GraphSnapshot
 
 log = logging.getLogger(__name__)

@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.fusion.graph import (
+from shared.codec import decode, encode
+from shared.graph.scene import (
     BUILDING_ID,
     ApplyResult,
     GraphReplica,
     PlaceGraph,
     SceneGraph,
 )
-from shared.codec import decode, encode
 from shared.messages.graph import (
     GraphDelta,
     GraphSnapshot,

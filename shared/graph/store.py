@@ -8,7 +8,7 @@ Layout of a store rooted at ``ROOT``::
         graph.msgpack                the GraphSnapshot (with mesh), lossless, via shared.codec
         extra.npz                    opaque arrays of the other stages (TSDF, tracks, ...)
         metadata.json                summary, the layout of the extra state, caller metadata
-        graph.sparkdsg               the same graph for Hydra's tools (see services.fusion.dsg)
+        graph.sparkdsg               the same graph for Hydra's tools (see shared.graph.dsg)
         MANIFEST.json                size and SHA-256 of every file above; written last
 
 A save writes every file with temp + fsync + rename into a hidden ``.000013.partial``
@@ -247,7 +247,7 @@ class MapStore:
 
     def _write_dsg(self, snapshot: GraphSnapshot, path: Path, files: dict[str, dict[str, Any]]) -> None:
         try:
-            from services.fusion.dsg import save_dsg
+            from shared.graph.dsg import save_dsg
         except ImportError as exc:
             log.warning("spark_dsg unavailable (%s): snapshot written without %s", exc, DSG_FILE)
             return

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.query.sync import ReplicaSync
+from shared.graph.sync import ReplicaSync
 from shared.messages.graph import GraphDelta, GraphSnapshot, SegmentNode
 
 
