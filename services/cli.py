@@ -1,7 +1,7 @@
 """The ``trackgraph`` command: one entry point, one subcommand per job.
 
 Every subcommand exits non-zero on failure with a one-line reason on stderr
-(DESIGN.md section 8).
+(docs/architecture.md, "Command-line contract").
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Every Zenoh key expression of the system, built from the robot id (DESIGN.md section 2)."""
+"""Every Zenoh key expression of the system, built from the robot id (the contract: docs/wire.md)."""
 
 from __future__ import annotations
 

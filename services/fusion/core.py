@@ -55,6 +55,8 @@ class FusionCore:
         tsdf = self.cfg.tsdf
         gamma = {o.track_id: confidence(o.keyframe, o.frames_since_keyframe, tsdf.alpha_p, tsdf.beta_p) for o in tf.tracks}
         ids = tf.track_ids
+        # Not in the paper (docs/method.md, F3): a propagated pixel votes only where eq. 1 was
+        # confident of its track; ``min_label_confidence: 0`` fuses every pixel as the paper does.
         if tf.confidence is not None and tsdf.min_label_confidence > 0:
             ids = np.where(tf.confidence >= round(255 * tsdf.min_label_confidence), ids, -1)
         stats = self.tsdf.integrate(fr.depth_m(), fr.rgb, fr.intrinsics, fr.T_world_cam, ids, gamma)

@@ -16,7 +16,8 @@ of them inside the mask of track tau, receives::
     l_{v,tau} += w_TSDF * gamma_t(tau) * n_{v,tau} / n_v        (w_TSDF = 1)
 
 which is the voxel-driven update of eq. 5 (project the voxel, read the mask there) averaged over
-the voxel's footprint in the image. Pixels outside every mask count in n_v, as a voxel that
+the voxel's footprint in the image. This is a deviation from the paper (docs/method.md, F2),
+which adds ``w_TSDF * gamma`` once per voxel that projects into the mask. Pixels outside every mask count in n_v, as a voxel that
 projects outside all masks gets no update, so weight does not grow with image resolution or
 with how close the camera is.
 

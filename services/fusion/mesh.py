@@ -7,7 +7,8 @@ supporting voxels. The vertex takes both voxels' hypotheses, each weight scaled 
 linear interpolation factor Open3D applies to the colours along that edge, with one slot per
 track (weights of a track present in both added) and the K strongest kept.
 
-Taking both ends, not only the nearer one, matters because the pixel vote lands in one voxel
+Deviation from the paper (docs/method.md, F4), whose vertex inherits the hypotheses of one
+supporting voxel. Taking both ends, not only the nearer one, matters because the pixel vote lands in one voxel
 per pixel, ``round(p / voxel_size)`` (:mod:`services.fusion.hypotheses`): where only a few
 frames voted (keyframes, when propagated pixels are too unsure to vote), the nearer end of an
 edge is often a voxel no pixel landed in while the farther end holds the votes. On the

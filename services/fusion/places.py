@@ -1,7 +1,9 @@
 """Sparse free-space places: Hydra's places layer, built in 2.5D from the mapped surfaces.
 
-DESIGN section 4 asks for "a GVD or skeleton of the ESDF of the free space, or an equivalent
-that is documented". The method, all vectorised numpy/scipy:
+Deviation from the paper, which keeps Hydra's places (docs/method.md, F5): Hydra builds them
+as a generalised Voronoi diagram of the 3D ESDF of free space; this is a documented 2.5D
+equivalent on a gravity-aligned grid, with no separate ESDF to maintain. The method, all
+vectorised numpy/scipy:
 
 1. **Floor height**: the lowest *dense* horizontal layer of the surface points. A z histogram
    in ``floor_bin_m`` bins; the floor is the median z of the lowest bin holding at least

@@ -9,6 +9,8 @@ centroids lie within ``search_radius_m`` (the set H_q) by
     J_qh = lambda_o * o_qh + lambda_a * cos(f_q, f_h)                     (eq. 9)
 
 and merged into the candidate with the largest J_qh among those passing all three gates.
+The paper does not say how near a centroid must be to enter H_q; ``search_radius_m`` (2 m)
+is this project's choice.
 The segment bookkeeping of a merge lives in ``segments.SegmentLayer``; this module only scores.
 """
 

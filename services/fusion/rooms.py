@@ -1,6 +1,9 @@
 """Rooms from free space, as Hydra segments them, and the builder of the places and rooms
 layers with ids that stay stable from one rebuild to the next.
 
+Deviation from the paper (docs/method.md, F5): Hydra segments rooms on its 3D places graph;
+here the same erode-and-grow idea runs on the 2D free-space grid of :mod:`.places`.
+
 Room segmentation (:func:`segment_rooms`):
 
 1. Erode the 2D free space by ``GraphConfig.room_erosion_m`` (a cell survives when no

@@ -1,5 +1,10 @@
 """TSDF volume with K source-track hypotheses per voxel, over Open3D's VoxelBlockGrid (III-A, III-C).
 
+Deviation from the paper (docs/method.md, F1): the paper runs Hydra as its reconstruction and
+scene-graph backbone; here the TSDF, the mesh and the graph are this project's own, so the
+hypotheses live in the voxel grid itself, and maps are also written as spark_dsg files
+(``shared.graph.dsg``) that Hydra's tools open.
+
 The grid holds Open3D's ``tsdf``, ``weight`` and ``color`` plus two extra attributes,
 ``hyp_id`` (K int32 track codes, ``track_id + 1``, 0 = empty slot, so the zero memory of a new
 block is a voxel with no hypothesis) and ``hyp_w`` (K float32 accumulated weights l). Each frame:

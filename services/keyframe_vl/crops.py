@@ -3,7 +3,8 @@
 Boxes are taken from each mask's own pixels, not from ``Masks.boxes``: segmenters may round
 or pad their boxes differently, and the pixels are unambiguous. A box is half-open,
 ``[x0, x1) x [y0, y1)``, and is padded by ``padding`` times its width (height) on the left
-and right (top and bottom), rounded outwards to whole pixels and clipped to the image.
+and right (top and bottom), rounded outwards to whole pixels and clipped to the image. The paper
+gives no padding; ``keyframe_vl.vl.crop_padding`` defaults to 0.1.
 """
 
 from __future__ import annotations

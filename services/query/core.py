@@ -3,9 +3,15 @@
 No Zenoh here. A :class:`QueryIndex` is an immutable view of one graph version: every CLIP
 gallery row of every segment stacked into one unit-normalised matrix, so a query is one
 matrix-vector product followed by a per-segment maximum (eq. 10) or, for the gallery
-ablation, a product with the segments' normalised mean features. The node builds a new
+ablation, a product with the segments' normalised mean features. The service builds a new
 index after each applied delta and swaps it in whole, so a query never sees a half-applied
 graph; answering needs no lock.
+
+Deviation from the paper (docs/method.md, Q1): eq. 10's maximum runs only over the gallery
+rows whose track holds at least ``QueryConfig.min_view_share`` of the segment's hypothesis
+weight (a segment keeps its best-supported row), so a small object's track absorbed by a
+larger segment cannot make that segment its answer; ``min_view_share: 0`` is the paper's
+plain maximum.
 """
 
 from __future__ import annotations
@@ -225,7 +231,8 @@ class QueryEngine:
 
 
 def hit_rows(hits: list[QueryHit]) -> list[dict]:
-    """Hits as the command line's ``--json`` rows (DESIGN.md section 8)."""
+    """Hits as the command line's ``--json`` rows (docs/architecture.md, "Command-line
+    contract")."""
     return [
         {
             "segment": h.segment,

@@ -20,7 +20,8 @@ def mask_prototypes(
     """Eq. 2: the mean of the normalised patch features inside each mask, normalised.
 
     A mask is taken on the patch grid by area: a patch counts with the fraction of its
-    pixels the mask covers, so thin or small masks still get a descriptor.
+    pixels the mask covers, so thin or small masks still get a descriptor. (The paper sums
+    the patches inside the mask; docs/method.md, T6.)
     """
     n = masks.shape[0]
     h, w, d = features.shape
@@ -177,7 +178,8 @@ def sparse_mask_iou(
 
 
 def ema(old: np.ndarray, new: np.ndarray, eta: float) -> np.ndarray:
-    """Track DINOv3 feature update (III-B): (1 - eta) old + eta new, renormalised."""
+    """Track DINOv3 feature update (III-B): (1 - eta) old + eta new, renormalised to unit
+    length like the prototypes it mixes with (the paper does not renormalise; docs/method.md, T6)."""
     v = (1.0 - eta) * old + eta * new
     return (v / max(float(np.linalg.norm(v)), 1e-12)).astype(np.float32)
 

@@ -15,6 +15,15 @@ distributed node:
 The in-process pipeline calls begin, apply (at once) and end; the node sends the request,
 ends the frame at once, and applies the masks when they come.
 
+Deviation: asynchronous masks (docs/method.md, T4). In the paper the keyframe's masks are at hand
+when the keyframe is processed. Here keyframe_vl may be a remote GPU, so masks may come after
+later frames; ``apply_masks`` corrects the keyframe then and re-propagates the kept frames
+after it. A live tracker has already sent those frames, labelled from the previous keyframe;
+``tracker.wait_for_masks`` holds each keyframe instead (lossless replay).
+
+Deviation: keyframe labels start soft (docs/method.md, T5). ``masks_to_soft`` gives each patch
+the share of its pixels in each mask, and a "no track" slot, rather than the paper's one-hot.
+
 Keyframe correction follows III-B: the propagated masks of the active tracks are scored
 against the detections with eq. 3 (w_iou IoU + w_feat max(cos, 0), the cosine between the
 track's EMA DINOv3 feature and the eq. 2 prototype), pairs need IoU >= 0.15 and s >= 0.35,
@@ -23,14 +32,14 @@ their feature with the EMA (eta 0.2) and unmatched detections start tracks. Keyf
 paint larger masks first, so an object lying on a larger one keeps its own id; pixels no mask
 covers form slot 0 ("no track"), propagated like any other slot.
 
-Deviation: retiring unmatched tracks. The paper retires every active track left unmatched at a
+Deviation (docs/method.md, T1): retiring unmatched tracks. The paper retires every active track left unmatched at a
 keyframe and leaves re-identification to the 3D layer (III-E). Here such a track becomes
 *lost* instead, and the detections the active tracks did not take are associated with the lost
 tracks in a second pass with the same eq. 3 score, gates and greedy rule, a lost track's
 predicted mask being its *footprint* (the world points under its keyframe masks, from the
 keyframe's depth and pose) projected into this keyframe with a depth test
 (``services.tracker.footprints``). A track matched there keeps its id. Why: the tracking
-evaluation of issue 6 scores 2D identities over the whole sequence and counts a switch when an
+evaluation (``trackgraph eval tracking``) scores 2D identities over the whole sequence and counts a switch when an
 object comes back under a new id, and a track goes unmatched for reasons that say nothing
 about the object being gone: the segmenter missed, split or merged it at that keyframe, a
 small object vanished from the propagated labels, or it left the view for a while. With
@@ -42,7 +51,7 @@ longest-lost track, or when a lost track's footprint overlaps a detection it did
 IoU >= ``DUPLICATE_IOU`` (another track holds that surface now). Propagation, as in the paper,
 carries the active tracks only.
 
-Deviation: a static-world check on the first pass (``AssociationConfig.support_*``). Eq. 3 is
+Deviation (docs/method.md, T2): a static-world check on the first pass (``AssociationConfig.support_*``). Eq. 3 is
 purely 2D, so when an object leaves the view its propagated label slides onto whatever comes in
 next to it, and at the keyframe that neighbour's detection continues the departed track (the
 commonest identity switch measured on the synthetic presets). The tracker has depth and poses,
@@ -52,7 +61,7 @@ the track's footprint, and not much fewer than near the best-supported candidate
 0.679), and from 0.63 to 0.25 with noise-free masks. It assumes a static scene: a track that
 moves more than its own size between keyframes restarts; ``support_radius_m: 0`` turns it off.
 
-Deviation: fragments. A detection that no track took, that lies mostly inside the predicted
+Deviation (docs/method.md, T3): fragments. A detection that no track took, that lies mostly inside the predicted
 mask of a track that took another detection, on that track's footprint and alike to the piece
 it took (``_absorb_fragments``), joins that track: a segmenter that cuts an object in two at one
 keyframe would otherwise leave a second track that competes for the whole object at the next
@@ -454,7 +463,8 @@ class TrackerCore:
 
     def _predicted_labels(self, st: FrameState, H: int, W: int) -> Annotated[np.ndarray, "(H, W) int32 track ids"]:
         """Where the active tracks are predicted at keyframe ``st``: propagated there (eq. 1),
-        or in ``per_frame`` mode the labels of the previous keyframe (every frame is one)."""
+        or in ``per_frame`` mode the labels of the previous keyframe (every frame is one; the
+        paper's per-frame baseline associates with BoT-SORT instead, docs/method.md, T7)."""
         if self.cfg.mode == "per_frame":
             prev = [s for s in self.history if s.count < st.count and s.labels is not None]
             return prev[-1].labels if prev else np.full((H, W), -1, np.int32)

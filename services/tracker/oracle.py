@@ -1,6 +1,6 @@
 """A tracker with perfect identities, for synthetic scenes: masks are the ground-truth
 instances, and an object keeps its track while in view. It isolates the fusion stages from
-tracking errors (the issue's "ground-truth tracked frames") and gives the upper bound of the
+tracking errors (``tracker.mode: ground_truth``, ground-truth tracked frames) and gives the upper bound of the
 mapping. Like a real tracker it can retire a track whose object left the view and start a
 new one when it returns, which is what long-term re-identification must merge."""
 

@@ -8,7 +8,9 @@ distributions over track slots: ``Y_t(p) = sum a_pqr Y_r(q)``.
 
 Slot convention: channel 0 of every label tensor is "no track" (background); channels 1..C-1
 are the active source tracks in the order the tracker keeps them. Propagation treats slot 0 like
-any other slot, so background is carried and distributions keep summing to one.
+any other slot, so background is carried and distributions keep summing to one. Deviation from
+the paper (docs/method.md, T5), whose distributions range over the active tracks only: without
+the background channel, pixels no keyframe mask covered would be forced onto a track.
 
 Implementation ("row windows"): the maps are oriented so rows run along the short side (the
 grid is transposed when wider than tall). Query row y is compared, in one batched matmul over
@@ -291,7 +293,9 @@ def masks_to_soft(
     earlier masks winning where they overlap (FastSAM sorts best first), or an integer slot
     image (0 or negative = no track). Pixels covered by no mask count for slot 0. Patch cells
     tile the image as ``floor(y * h / H)``, the same partition association uses. ``hard``
-    turns each patch into the one-hot of its majority slot (the paper's example).
+    turns each patch into the one-hot of its majority slot (the paper's example). Deviation
+    from the paper (docs/method.md, T5): the tracker uses the soft form, so a patch on a mask
+    border starts as the mix it is.
     """
     if isinstance(masks, torch.Tensor):
         masks = masks.detach().cpu().numpy()

@@ -35,7 +35,7 @@ class TSDFConfig(StrictModel):
     track borders and on small objects it is losing, its argmax mostly names the neighbour,
     and those votes outweigh the keyframe's over a keyframe interval: on the ``small`` preset
     with noise-free masks and classical features the class-agnostic AP50 went from 0.49 to
-    0.75 with 0.8. 0 fuses every propagated pixel, as the paper does."""
+    0.75 with 0.8. 0 fuses every propagated pixel, as the paper does (docs/method.md, F3)."""
     mesh_min_weight: float = Field(1.0, ge=0)
     """Marching cubes uses voxels whose TSDF weight exceeds this: 1 keeps surfaces seen in at
     least two frames, which drops single-frame depth noise."""

@@ -23,7 +23,7 @@ class QueryConfig(StrictModel):
     so a small object's track that a larger segment absorbed (a clock on a wall, a book in a
     shelf) cannot make that segment the answer for it. On the synthetic ``demo`` preset with
     simulated perception this took the top-1 hit rate of synonym queries for objects over
-    20 cm from 0.785 to 0.861. 0 is the paper's plain maximum."""
+    20 cm from 0.785 to 0.861. 0 is the paper's plain maximum (docs/method.md, Q1)."""
     max_top_k: int = Field(100, ge=1)
     """Largest top_k a client may ask for."""
     max_text_chars: int = Field(512, ge=1)

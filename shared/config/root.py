@@ -19,7 +19,7 @@ ROBOT_ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
 
 class TrackGraphConfig(StrictModel):
-    """Every tunable of every service. Defaults are the paper's (DESIGN.md section 5)."""
+    """Every tunable of every service. Defaults are the paper's (docs/method.md, "Parameters")."""
 
     robot_id: str = "robot0"
     """Namespace of this robot's keys: ``trackgraph/<robot_id>/...``."""

@@ -42,7 +42,7 @@ class SourceConfig(StrictModel):
     """Dataset replay settings of the source service and of ``trackgraph map``."""
 
     dataset: Literal["replica", "scannetpp", "hm3d", "tum", "rosbag"] = "replica"
-    """Reader for the sequence folder (DESIGN.md section 7)."""
+    """Reader for the sequence folder (docs/architecture.md, "Input formats")."""
     path: str | None = None
     """Sequence folder or bag; the command line's SEQ_DIR overrides it."""
     mode: Literal["lossless", "live"] = "lossless"

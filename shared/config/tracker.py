@@ -56,7 +56,7 @@ class AssociationConfig(StrictModel):
     of the detection's back-projected points lie within this distance of the track's 3D
     footprint (the surface its keyframe masks covered), i.e. the static-world check that
     stops a label that drifted onto a neighbour from taking the neighbour's detection.
-    0 turns the check off (the paper's purely 2D eq. 3)."""
+    0 turns the check off (the paper's purely 2D eq. 3; docs/method.md, T2)."""
     support_min: float = Field(0.02, ge=0, le=1)
     """Share of the detection's points that must have such support (see
     ``support_radius_m``)."""
@@ -77,7 +77,8 @@ class TrackerConfig(StrictModel):
 
     mode: Literal["propagation", "per_frame", "ground_truth"] = "propagation"
     """propagation: the paper's method. per_frame: segment every frame and associate by
-    IoU + appearance, the baseline of the tracker ablation. ground_truth: perfect identities
+    IoU + appearance (eq. 3 against the previous frame's labels), the baseline of the tracker
+    ablation; the paper's baseline uses BoT-SORT (docs/method.md, T7). ground_truth: perfect identities
     from a synthetic scene's instance images, to measure fusion alone."""
     keyframe_interval: int = Field(24, ge=1)
     """K_f, frames between keyframes (III-B)."""
@@ -89,7 +90,8 @@ class TrackerConfig(StrictModel):
     """Eqs. 2-3 parameters."""
     keyframe_timeout_s: float = Field(5.0, gt=0)
     """Masks not back after this long count as lost; the tracker keeps propagating and
-    retries at the next keyframe."""
+    retries at the next keyframe (not in the paper, which has no late masks; docs/method.md,
+    T4)."""
     wait_for_masks: bool = False
     """Hold each keyframe until its masks arrive (up to ``keyframe_timeout_s``) before
     emitting it: lossless replay then gives the in-process result. False never waits, as a

@@ -1,4 +1,4 @@
-"""Dataset readers (DESIGN.md section 7) behind one factory, :func:`open_sequence`."""
+"""Dataset readers (docs/architecture.md, "Input formats") behind one factory, :func:`open_sequence`."""
 
 from __future__ import annotations
 

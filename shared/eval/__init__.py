@@ -1,5 +1,6 @@
 """Evaluation: OpenLex3D segmentation and retrieval, class-agnostic 3D instances, 2D source
-tracks and segmenter masks (DESIGN.md sections 6 and 8).
+tracks and segmenter masks (docs/architecture.md, "Evaluation protocol" and "Command-line
+contract").
 
 Public entry points, each returning a JSON-serialisable dict (undefined figures are None):
 

@@ -7,7 +7,7 @@ the mesh), recomputes the derived edges, diffs against the previous version, bum
 viewers) hold a :class:`GraphReplica` that applies those deltas in order and asks for a
 snapshot when it sees a gap.
 
-Edges (DESIGN section 4, paper III-A):
+Edges (paper III-A; docs/method.md, "Scene graph"):
 
 - ``segment_place``: each segment to its nearest place. With a free-space layout the
   nearest place is found through the grid (the place whose region is nearest the centroid),

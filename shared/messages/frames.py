@@ -20,7 +20,7 @@ Pose4 = Annotated[np.ndarray, ArraySpec(("float64",), (4, 4), finite=True)]
 
 @register
 class Frame(Message):
-    """One RGB-D observation with its pose (DESIGN.md section 2, ``frames``)."""
+    """One RGB-D observation with its pose (``frames``; fields and limits in docs/wire.md)."""
 
     frame_index: int = Field(ge=0)
     """Index of the frame in its sequence (after striding, the original index)."""

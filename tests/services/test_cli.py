@@ -1,4 +1,5 @@
-"""The command-line contract of DESIGN.md section 8 for the commands that exist so far."""
+"""The command-line contract (docs/architecture.md, "Command-line contract") for the commands
+that exist so far."""
 
 from __future__ import annotations
 

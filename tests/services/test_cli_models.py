@@ -1,4 +1,5 @@
-"""CLI contract of `models check`, `export-onnx` and `eval segmenter` (DESIGN.md section 8)."""
+"""CLI contract of `models check`, `export-onnx` and `eval segmenter` (docs/architecture.md,
+"Command-line contract")."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""Vision-language encoder backends of keyframe_vl, behind one factory (DESIGN.md section 3).
+"""Vision-language encoder backends of keyframe_vl, behind one factory
+(docs/architecture.md, "Perception backends").
 
 - ``openclip``: OpenCLIP from a local checkpoint (:mod:`.openclip`);
 - ``clip_onnx``: the same towers exported to ONNX, run by onnxruntime (:mod:`.clip_onnx`);
