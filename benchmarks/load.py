@@ -15,6 +15,9 @@ and each drop is counted by the service that made it:
 * the tracker, frames its newest-only input queue replaced (``tracks/frame`` input);
 * fusion, tracked frames its bounded input queue had no room for.
 
+The counts come from the ``status.json`` each service writes beside its log at stop (its last
+``ServiceStatus`` report).
+
 Every 5 s the resident memory (VmRSS) of each process is sampled. Reported per process: RSS
 after the warm-up (the first ``--warmup`` fraction of the run), the maximum, the growth
 between them and the growth per minute over the rest; and the frame accounting: published,
@@ -38,7 +41,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from services.bench.rate import SOURCE_LINE, last_stats, start_live_system  # noqa: E402
+from services.bench.rate import figure, input_count, stage_reports, start_live_system  # noqa: E402
 from shared.procfs import status_mb  # noqa: E402
 
 DEFAULT_OUT = ROOT / "benchmarks" / "out" / "load.json"
@@ -116,23 +119,20 @@ def run_load(seq: Path, work: Path, *, minutes: float, rate_hz: float, warmup: f
             "growth_mb_per_min": round((after[-1] - base) / span_min, 2),
         }
 
-    logs = plan.log_dir
-    source_line = SOURCE_LINE.findall((logs / "source.log").read_text())
-    tracker = last_stats(logs / "tracker.log", "tracker stopped") or {}
+    reports = stage_reports(plan.log_dir, ("source", "tracker", "fusion"))
+    source, tracker, fusion = reports["source"], reports["tracker"], reports["fusion"]
     fusion_run = json.loads((out / "run.json").read_text()) if (out / "run.json").exists() else {}
-    fusion_stats = last_stats(logs / "fusion.log", "fusion stopped") or {}
-    published, seconds, hz, src_dropped = (int(source_line[-1][0]), float(source_line[-1][1]), float(source_line[-1][2]), int(source_line[-1][3])) if source_line else (None, None, None, None)
-    frames_in = tracker.get("frames_in", {})
+    seconds = figure(source, "seconds")
     accounting = {
         "planned": loops * n,
-        "published": published,
-        "source_dropped": src_dropped,
-        "source_hz": hz,
-        "tracker_received": frames_in.get("received"),
-        "tracker_dropped": frames_in.get("dropped"),
-        "tracker_frames": tracker.get("frames"),
-        "fusion_dropped": fusion_stats.get("input_dropped"),
-        "frames_in_map": fusion_run.get("frames_in_map"),
+        "published": figure(source, "published"),
+        "source_dropped": figure(source, "dropped"),
+        "source_hz": figure(source, "hz"),
+        "tracker_received": input_count(tracker, "frames", "received"),
+        "tracker_dropped": input_count(tracker, "frames", "dropped"),
+        "tracker_frames": figure(tracker, "frames"),
+        "fusion_dropped": input_count(fusion, "tracks_frame", "dropped"),
+        "frames_in_map": fusion_run.get("frames_in_map", figure(fusion, "frames_in_map")),
         "fusion_hz": fusion_run.get("hz"),
     }
     return {

@@ -418,6 +418,19 @@ def _cmd_launch(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_status(args: argparse.Namespace) -> int:
+    from services.monitor import MonitorError, run_status
+
+    cfg = _load_or_default(args.config)
+    transport = cfg.transport
+    if args.connect:
+        transport = transport.model_copy(update={"connect": args.connect})
+    try:
+        return run_status(transport, args.robot or cfg.robot_id, once=args.once, as_json=args.json, timeout=args.timeout)
+    except MonitorError as exc:
+        raise CommandError(str(exc)) from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="trackgraph", description=__doc__.splitlines()[0])
     p.add_argument("-v", "--verbose", action="count", default=0, help="debug logging")
@@ -568,6 +581,15 @@ def build_parser() -> argparse.ArgumentParser:
     la.add_argument("--log-dir", type=Path, metavar="DIR", help="one log per process (default MAP_DIR/logs)")
     la.add_argument("--json", action="store_true", help="no status table; print the final summary as JSON")
     la.set_defaults(func=_cmd_launch)
+
+    st = sub.add_parser("status", help="the live status table of a running system (every service's ServiceStatus reports)")
+    st.add_argument("--connect", action="append", metavar="ENDPOINT", help="router endpoint(s) (default: the config's)")
+    st.add_argument("--robot", metavar="ID", help="robot id (default: the config's)")
+    st.add_argument("--config", type=Path, metavar="FILE", help="take transport and robot id from this system config")
+    st.add_argument("--once", action="store_true", help="print the table once and exit")
+    st.add_argument("--timeout", type=float, default=5.0, metavar="S", help="fail if no service reports within S seconds")
+    st.add_argument("--json", action="store_true", help='JSON instead of the table: {"robot", "services": {NAME: {ServiceStatus fields..., "age_s", "summary"}}}, one line per second (once with --once)')
+    st.set_defaults(func=_cmd_status)
 
     q = sub.add_parser("query", help='ranked segments for a text or image query: MAP_DIR "TEXT", or --live "TEXT"')
     q.add_argument("args", nargs="*", metavar="[MAP_DIR] TEXT", help='a saved map and the query, or only the query with --live')

@@ -4,14 +4,18 @@ The launcher starts the router first, then the services in file order (each wait
 services it names in ``after`` to be alive), and watches them two ways: the process itself
 (an exit is a crash unless a finite service finished with status 0) and its liveliness token
 (``trackgraph/<robot>/alive/<service>``, which vanishes within the link lease when a process
-freezes or loses the router). A crashed or unresponsive service is restarted under its
+freezes or loses the router). What each service is doing comes from its own reports
+(``ServiceStatus`` on ``trackgraph/<robot>/status/<service>``, once a second): the status
+table shows each one's rate, drops, queue depth and progress (frames done of total, ETA). A crashed or unresponsive service is restarted under its
 bounded policy, with exponential backoff; fusion is restarted with ``--resume`` so it goes on
 from its last snapshot. A service that exhausts its policy ends the launch with an error.
 On Ctrl-C, or when every finite service has finished, the others get SIGTERM in reverse
 start order (the router last), and SIGKILL after ``stop_timeout_s``.
 
 Each child runs ``python -m services.cli ...`` in a new process group with its output in
-``LOG_DIR/<service>.log``; the resolved system config they all read is ``LOG_DIR/config.yaml``.
+``LOG_DIR/<service>.log`` and its last status report, written at stop, in
+``LOG_DIR/<service>.status.json``; the resolved system config they all read is
+``LOG_DIR/config.yaml``.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ from shared.config.base import ConfigError, deep_merge, save_resolved, validate
 from shared.config.launch import LaunchConfig, RestartPolicy, ServiceSpec, load_launch
 from shared.config.root import TrackGraphConfig
 from shared.procfs import status_mb
+from shared.runtime.status import read_status, status_path
 
 log = logging.getLogger(__name__)
 
@@ -98,6 +103,9 @@ def plan_launch(
     if sequence is not None:
         system = prepare_config(system, Path(sequence))
     config_path = save_resolved(system, log_dir / "config.yaml")
+    for spec in launch.services:
+        # A report an earlier launch left in this folder must not pass for this one's.
+        status_path(log_dir, spec.name).unlink(missing_ok=True)
     plan = Plan(launch, path, log_dir, config_path, system, Path(sequence) if sequence else None, Path(out) if out else None)
 
     py = [sys.executable, "-m", "services.cli"]
@@ -111,9 +119,9 @@ def plan_launch(
             if spec.zenoh_config is not None:
                 cmd += ["--zenoh-config", str(rel(spec.zenoh_config))]
         elif spec.name == "source":
-            cmd = [*py, "source", str(sequence), "--config", str(cfg_file)]
+            cmd = [*py, "source", str(sequence), "--config", str(cfg_file), "--status-file", str(status_path(log_dir, spec.name))]
         else:
-            cmd = [*py, "serve", spec.name, "--config", str(cfg_file)]
+            cmd = [*py, "serve", spec.name, "--config", str(cfg_file), "--status-file", str(status_path(log_dir, spec.name))]
             if spec.name == "fusion":
                 cmd += ["--out", str(out)]
             if spec.name == "viewer":
@@ -167,6 +175,9 @@ class Supervisor:
         self.stop_event = threading.Event()
         self.session = None
         self.watcher = None
+        self.bus = None
+        self.reports = None
+        """The services' ServiceStatus reports (a :class:`services.monitor.StatusWatch`), once connected."""
         self._connecting: threading.Thread | None = None
         self._watching_since = 0.0
         self._status = status
@@ -223,7 +234,8 @@ class Supervisor:
     def _open_session(self) -> None:
         """Join the network in the background: a robot's launch may come up before the base
         station's router, and its services must start anyway (they wait for it themselves)."""
-        from shared.transport import LivelinessWatcher, open_session
+        from services.monitor import StatusWatch
+        from shared.transport import LivelinessWatcher, ZenohBus, open_session
 
         def connect() -> None:
             transport = self.plan.system.transport.model_copy(update={"connect_timeout_s": -1.0})
@@ -233,8 +245,10 @@ class Supervisor:
                 return
             self.session = session
             self._watching_since = time.monotonic()
+            self.bus = ZenohBus(session, self.plan.system.robot_id, transport.codec)
+            self.reports = StatusWatch(self.bus, self.plan.system.robot_id)
             self.watcher = LivelinessWatcher(session, f"{self.topics_root}/**")
-            self._event("watching liveliness on " + ", ".join(transport.connect))
+            self._event("watching liveliness and status reports on " + ", ".join(transport.connect))
 
         self._connecting = threading.Thread(target=connect, name="launch:session", daemon=True)
         self._connecting.start()
@@ -323,7 +337,31 @@ class Supervisor:
                 self._close_session()
         self._close_session()
 
+    def report(self, name: str):
+        """(newest ServiceStatus of ``name``, its age in seconds), or None before its first."""
+        return None if self.reports is None else self.reports.get(name)
+
+    def final_report(self, name: str):
+        """What ``name`` last reported: its live report while it runs; once it has exited, the
+        ``status.json`` it wrote at stop (if any), else its last live report."""
+        p = self.procs[name]
+        live = self.report(name)
+        if p.pid is None:
+            path = status_path(self.plan.log_dir, name)
+            if path.is_file():
+                try:
+                    return read_status(path)
+                except ValueError as exc:
+                    log.warning("%s", exc)
+        return None if live is None else live[0]
+
     def _close_session(self) -> None:
+        if self.reports is not None:
+            self.reports.close()
+            self.reports = None
+        if self.bus is not None:
+            self.bus.close()  # its endpoints; the session is closed below
+            self.bus = None
         if self.watcher is not None:
             self.watcher.close()
             self.watcher = None
@@ -332,6 +370,14 @@ class Supervisor:
             self.session = None
 
     def summary(self) -> dict[str, Any]:
+        from services.monitor import report_summary
+
+        def status(name: str) -> dict[str, Any] | None:
+            if name == "router":
+                return None
+            st = self.final_report(name)
+            return None if st is None else report_summary(st)
+
         return {
             "services": {
                 p.name: {
@@ -340,6 +386,8 @@ class Supervisor:
                     "exit_codes": p.exit_codes,
                     "peak_rss_mb": round(p.peak_rss_mb, 1),
                     "log": str(p.log_path),
+                    "status": status(p.name),
+                    "status_file": None if p.name == "router" else str(status_path(self.plan.log_dir, p.name)),
                 }
                 for p in self.procs.values()
             },
@@ -365,18 +413,7 @@ class _StatusView:
             self.live.start()
 
     def table(self):
-        from rich.table import Table
-
-        t = Table(title=f"trackgraph launch {self.sup.plan.source}", header_style="bold", caption="\n".join(self.sup._events))
-        for col in ("service", "state", "pid", "up", "restarts", "log"):
-            t.add_column(col)
-        colours = {"alive": "green", "finished": "cyan", "failed": "red", "unresponsive": "yellow", "backoff": "yellow"}
-        now = time.monotonic()
-        for name in self.sup.order:
-            p = self.sup.procs[name]
-            up = f"{now - p.started_at:.0f} s" if p.pid is not None else "-"
-            t.add_row(name, f"[{colours.get(p.state, 'white')}]{p.state}[/]", str(p.pid or "-"), up, str(len(p.restarts)), str(p.log_path))
-        return t
+        return launch_table(self.sup)
 
     def update(self) -> None:
         if self.live is not None:
@@ -386,6 +423,37 @@ class _StatusView:
         if self.live is not None:
             self.live.update(self.table())
             self.live.stop()
+
+
+LAUNCH_COLUMNS = ("service", "state", "pid", "up", "restarts", "Hz", "drops", "queue", "progress", "log")
+
+
+def launch_table(sup: Supervisor, now: float | None = None):
+    """The launcher's table: each process's state (from the supervisor) and what its own
+    reports say (rate, drops, queue depth, frames done of total with an ETA)."""
+    from rich.table import Table
+
+    from services.monitor import STALE_S, report_cells
+
+    now = time.monotonic() if now is None else now
+    t = Table(title=f"trackgraph launch {sup.plan.source}", header_style="bold", caption="\n".join(sup._events))
+    for col in LAUNCH_COLUMNS:
+        t.add_column(col, justify="right" if col in ("pid", "restarts", "Hz", "drops", "queue") else "left")
+    colours = {"alive": "green", "finished": "cyan", "failed": "red", "unresponsive": "yellow", "backoff": "yellow"}
+    for name in sup.order:
+        p = sup.procs[name]
+        up = f"{now - p.started_at:.0f} s" if p.pid is not None else "-"
+        got = None
+        if name != "router" and p.pid is not None:
+            got = sup.report(name)
+        elif name != "router":
+            st = sup.final_report(name)  # it has exited: what it reported last
+            got = None if st is None else (st, 0.0)
+        cells = report_cells(got[0] if got is not None else None)
+        stale = got is not None and got[1] > STALE_S
+        figures = [f"[dim]{cells[c]}[/]" if stale else cells[c] for c in ("Hz", "drops", "queue", "progress")]
+        t.add_row(name, f"[{colours.get(p.state, 'white')}]{p.state}[/]", str(p.pid or "-"), up, str(len(p.restarts)), *figures, str(p.log_path))
+    return t
 
 
 def _peak_rss_mb(pid: int) -> float:

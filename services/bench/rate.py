@@ -9,7 +9,9 @@ no room for) and fusion (tracked frames its bounded queue had no room for). A ra
 sustained when no stage dropped anything, every frame published reached the map, the map kept
 pace (its frames were fused, first to last, at 90% of the source's rate or more), and so did
 keyframe_vl: every keyframe got its masks and CLIP features back, first to last at 90% of the
-rate the tracker asked for them (``services.tracker.pace``). The pace conditions matter
+rate the tracker asked for them (``services.tracker.pace``). Every count comes from the
+``status.json`` each service writes beside its log at stop (its last ``ServiceStatus``), never
+from log text. The pace conditions matter
 because buffers hide a slow stage for a while: fusion queues every tracked frame rather than
 lose it, and a live tracker never waits for masks, so a keyframe_vl that cannot keep up only
 makes its answers later and later while the frames flow on, tracked on stale labels.
@@ -20,11 +22,9 @@ has bracketed the limit, then bisects; the answer is the highest sustained rate 
 
 from __future__ import annotations
 
-import ast
 import json
 import logging
 import math
-import re
 import shutil
 import socket
 import threading
@@ -35,9 +35,11 @@ from typing import Any
 
 import yaml
 
+from shared.messages.status import ServiceStatus
+from shared.runtime.status import read_status, status_path
+
 log = logging.getLogger(__name__)
 
-SOURCE_LINE = re.compile(r"published (\d+) frames in ([\d.]+) s \(([\d.]+) Hz\), dropped (\d+)")
 PACE_SHARE = 0.9
 """A sustained rate: the map took in frames (first to last fused) at least this share of the
 source's rate, besides dropping none."""
@@ -55,18 +57,48 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def last_stats(log_file: Path, pattern: str) -> dict | None:
-    """The dict a service logs when it stops (``<service> stopped: {...}``), the last one."""
-    if not log_file.exists():
-        return None
-    found = None
-    for line in log_file.read_text(errors="replace").splitlines():
-        if pattern in line and "{" in line:
+STAGES = ("source", "tracker", "keyframe_vl", "fusion")
+DROP_INPUT = {"tracker": "frames", "keyframe_vl": "keyframe_request", "fusion": "tracks_frame"}
+"""The input whose ``dropped`` counts a stage's lost work (the source counts its own, in its
+``dropped`` figure)."""
+
+
+def stage_reports(log_dir: Path, names: tuple[str, ...] = STAGES) -> dict[str, ServiceStatus | None]:
+    """Each service's last report, from ``<log_dir>/<service>.status.json``; None for one that
+    wrote none (it crashed, or never started) or whose file is not a report (logged)."""
+    out: dict[str, ServiceStatus | None] = {}
+    for name in names:
+        path = status_path(log_dir, name)
+        out[name] = None
+        if path.is_file():
             try:
-                found = ast.literal_eval(line[line.index("{") :])
-            except (ValueError, SyntaxError):
-                continue
-    return found
+                out[name] = read_status(path)
+            except ValueError as exc:
+                log.warning("%s", exc)
+    return out
+
+
+def figure(st: ServiceStatus | None, name: str) -> Any:
+    """A report's own figure ``name``, None without a report or the figure."""
+    return None if st is None else st.figures.get(name)
+
+
+def input_count(st: ServiceStatus | None, name: str, what: str = "dropped") -> int | None:
+    """Counter ``what`` of input ``name`` in a report; None without a report or that input."""
+    if st is None:
+        return None
+    for inp in st.inputs:
+        if inp.name == name:
+            return int(getattr(inp, what))
+    return None
+
+
+def stage_drops(reports: dict[str, ServiceStatus | None]) -> dict[str, int | None]:
+    """Frames (or keyframe requests) each stage lost, as the trial's ``drops``."""
+    drops: dict[str, int | None] = {"source": figure(reports.get("source"), "dropped")}
+    for stage, inp in DROP_INPUT.items():
+        drops[stage] = input_count(reports.get(stage), inp)
+    return drops
 
 
 def start_live_system(
@@ -111,7 +143,6 @@ def trial_frames(rate_hz: float, seconds: float | None, frames: int | None, keyf
 
 def live_trial(sequence: Path, config: Path, work: Path, rate_hz: float, frames: int | None) -> dict[str, Any]:
     """One run of the live system at ``rate_hz`` over the first ``frames`` frames."""
-    from services.tracker.pace import kept_up
     from shared.config.root import load_config
 
     source: dict[str, Any] = {"mode": "live", "rate_hz": float(rate_hz)}
@@ -137,32 +168,38 @@ def live_trial(sequence: Path, config: Path, work: Path, rate_hz: float, frames:
         log.warning("trial at %.1f Hz still running after %.0f s; stopping it", rate_hz, budget)
         sup.stop_event.set()
         runner.join()
-    logs = plan.log_dir
-    src = SOURCE_LINE.findall((logs / "source.log").read_text(errors="replace")) if (logs / "source.log").exists() else []
-    tracker = last_stats(logs / "tracker.log", "tracker stopped") or {}
-    fusion = last_stats(logs / "fusion.log", "fusion stopped") or {}
-    kvl = last_stats(logs / "keyframe_vl.log", "keyframe_vl stopped") or {}
-    run = json.loads((out / "run.json").read_text()) if (out / "run.json").exists() else {}
-    published = int(src[-1][0]) if src else None
-    drops = {
-        "source": int(src[-1][3]) if src else None,
-        "tracker": tracker.get("frames_in", {}).get("dropped"),
-        "keyframe_vl": kvl.get("requests", {}).get("dropped"),
-        "fusion": fusion.get("input_dropped"),
+    res, meets_rule = trial_result(plan.log_dir, out, rate_hz)
+    ok = not timed_out and sup.error is None and meets_rule
+    return {
+        **res,
+        "sustained": bool(ok),
+        "error": sup.error or ("timed out" if timed_out else None),
+        "seconds": round(time.monotonic() - t0, 1),
     }
+
+
+def trial_result(log_dir: Path, map_dir: Path, rate_hz: float) -> tuple[dict[str, Any], bool]:
+    """What one trial's services reported (their ``status.json`` in ``log_dir``) and its map
+    (``map_dir/run.json``) say: the trial's figures, and whether they meet the sustained-rate
+    rule (the caller adds how the run itself ended)."""
+    from services.tracker.pace import kept_up
+
+    reports = stage_reports(log_dir)
+    run = json.loads((map_dir / "run.json").read_text()) if (map_dir / "run.json").exists() else {}
+    published = figure(reports["source"], "published")
+    drops = stage_drops(reports)
     known = [v for v in drops.values() if v is not None]
     dropped = sum(known) if len(known) == len(drops) else None
-    in_map = run.get("frames_in_map")
+    in_map = run.get("frames_in_map", figure(reports["fusion"], "frames_in_map"))
     # Frames no stage counted as dropped but that never reached the map (lost in transit,
     # or published before a subscriber was ready) count against the rate too.
-    lost = None if published is None or in_map is None or dropped is None else max(published - dropped - int(in_map), 0)
+    lost = None if published is None or in_map is None or dropped is None else max(int(published) - dropped - int(in_map), 0)
     # Buffers hide a slow stage for a while: the map must also have kept the source's pace.
     fused_s = run.get("fused_seconds")
     pace = (int(in_map) - 1) / fused_s if in_map and fused_s else None
     kept_pace = pace is not None and pace >= PACE_SHARE * rate_hz
-    keyframes = tracker.get("keyframes")
+    keyframes = figure(reports["tracker"], "keyframes")
     kf_ok = keyframes is not None and kept_up(keyframes, PACE_SHARE)
-    ok = not timed_out and sup.error is None and bool(published) and dropped == 0 and lost == 0 and kept_pace and kf_ok
     return {
         "rate_hz": float(rate_hz),
         "published": published,
@@ -173,10 +210,7 @@ def live_trial(sequence: Path, config: Path, work: Path, rate_hz: float, frames:
         "fused_hz": None if pace is None else round(pace, 4),
         "keyframes": keyframes,
         "keyframes_kept_up": kf_ok,
-        "sustained": bool(ok),
-        "error": sup.error or ("timed out" if timed_out else None),
-        "seconds": round(time.monotonic() - t0, 1),
-    }
+    }, bool(published) and dropped == 0 and lost == 0 and kept_pace and kf_ok
 
 
 def search_rate(trial: Callable[[float], dict[str, Any]], start_hz: float, trials: int) -> tuple[float | None, list[dict[str, Any]]]:

@@ -5,6 +5,8 @@ killed with SIGKILL is restarted, resynchronises and answers the same."""
 
 from __future__ import annotations
 
+import itertools
+import json
 import os
 import signal
 import socket
@@ -20,6 +22,8 @@ import yaml
 
 from services.launch import LaunchError, Supervisor, plan_launch
 from shared.config.base import ConfigError
+from shared.messages.status import InputCounters, ServiceStatus
+from shared.runtime.status import read_status, status_path, write_status
 
 ROOT = Path(__file__).resolve().parents[2]
 SYNTHETIC = ROOT / "deploy" / "configs" / "synthetic.yaml"
@@ -71,8 +75,70 @@ def test_the_shipped_launch_files_are_valid(tmp_path):
         path = ROOT / "deploy" / name
         plan = plan_launch(path, sequence=seq, out=tmp_path / "map", log_dir=tmp_path / name)
         assert plan.commands, name
-        for cmd in plan.commands.values():
+        for service, cmd in plan.commands.items():
             assert cmd[:3] == [sys.executable, "-m", "services.cli"]
+            # Every service but the router writes its last status report beside its log.
+            if service == "router":
+                assert "--status-file" not in cmd
+            else:
+                assert cmd[cmd.index("--status-file") + 1] == str(status_path(tmp_path / name, service)), (name, service)
+
+
+def test_an_earlier_launch_status_file_is_removed_at_plan_time(tmp_path):
+    path = write_launch(tmp_path, [{"name": "router"}, {"name": "query"}])
+    old = status_path(tmp_path / "logs", "query")
+    old.parent.mkdir()
+    write_status(old, ServiceStatus(service="query", pid=1, state="stopped", uptime_s=1.0))
+    plan_launch(path, log_dir=tmp_path / "logs")
+    assert not old.exists()
+
+
+def _report(service: str, **kw) -> ServiceStatus:
+    return ServiceStatus(**{"service": service, "pid": 7, "state": "running", "uptime_s": 12.0, **kw})
+
+
+def test_the_status_table_shows_rate_drops_queue_and_progress(tmp_path):
+    from rich.console import Console
+
+    from services.launch import LAUNCH_COLUMNS, launch_table
+
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    services = [{"name": "router"}, {"name": "source"}, {"name": "tracker"}, {"name": "fusion", "args": ["--exit-at-end"]}, {"name": "query"}]
+    plan = plan_launch(write_launch(tmp_path, services), sequence=seq, out=tmp_path / "map", log_dir=tmp_path / "logs")
+    sup = Supervisor(plan, status=False)
+    reports = {
+        "source": (_report("source", frames_done=150, frames_expected=300, rate_hz=10.0, figures={"dropped": 2}), 0.3),
+        "tracker": (_report("tracker", frames_done=140, frames_expected=300, rate_hz=8.0,
+                            inputs=[InputCounters(name="frames", received=145, dropped=5, queue_depth=1)]), 0.5),  # fmt: skip
+        "fusion": (_report("fusion", frames_done=100, frames_expected=300, rate_hz=4.0, inputs=[InputCounters(name="tracks_frame", queue_depth=30)]), 9.0),
+    }
+    sup.report = lambda name: reports.get(name)
+    # The fusion process has exited: its status.json (written at stop) is what the table shows.
+    write_status(status_path(plan.log_dir, "fusion"), _report("fusion", state="stopped", frames_done=300, frames_expected=300))
+
+    class Running:
+        pid = 4242
+
+        def poll(self):
+            return None
+
+    for name in ("source", "tracker"):
+        sup.procs[name].popen, sup.procs[name].state = Running(), "alive"
+    console = Console(width=300, record=True, file=__import__("io").StringIO())
+    console.print(launch_table(sup, now=sup.procs["source"].started_at + 30))
+    text = console.export_text()
+    header = next(ln for ln in text.splitlines() if "service" in ln)
+    assert [c.strip() for c in header.strip("┃ ").split("┃")] == list(LAUNCH_COLUMNS)
+    row = {ln.split()[1]: ln for ln in text.splitlines() if ln.startswith("│")}
+    assert "150/300 (50%), ETA 15 s" in row["source"] and " 10 " in row["source"] and " 2 " in row["source"]
+    assert "140/300 (47%), ETA 20 s" in row["tracker"] and " 5 " in row["tracker"] and " 1 " in row["tracker"]
+    assert "300/300 (100%) done" in row["fusion"]
+    assert row["query"].count(" - ") >= 4  # no report yet
+    summary = sup.summary()["services"]
+    assert summary["source"]["status"]["frames_done"] == 150 and summary["source"]["status"]["dropped"] == 2
+    assert summary["fusion"]["status"]["state"] == "stopped" and summary["router"]["status"] is None
+    assert summary["tracker"]["status_file"] == str(status_path(plan.log_dir, "tracker"))
 
 
 @pytest.mark.zenoh
@@ -183,3 +249,118 @@ def test_whole_system_as_processes_equals_in_process_and_survives_a_killed_query
     assert not runner.is_alive()
     assert all(p.pid is None for p in sup.procs.values())
     assert sup.procs["fusion"].state == "stopped" and (out / "graph").is_dir()
+
+
+class ReportLog:
+    """Every ServiceStatus on ``trackgraph/<robot>/status/**``, with when it came."""
+
+    def __init__(self, endpoint: str, robot: str = "robot0") -> None:
+        from shared.config import TransportConfig
+        from shared.transport import ZenohBus
+
+        transport = TransportConfig(mode="client", connect=[endpoint], shared_memory=False, connect_timeout_s=120.0)
+        self.bus = ZenohBus.open(transport, robot)
+        self.got: dict[str, list[tuple[float, str]]] = {}
+        self._lock = threading.Lock()
+        self.bus.subscribe(f"trackgraph/{robot}/status/**", ServiceStatus, self._on, capacity=1024)
+
+    def _on(self, env) -> None:
+        with self._lock:
+            self.got.setdefault(env.body.service, []).append((time.monotonic(), env.body.state))
+
+    def gaps(self) -> dict[str, float]:
+        """Per service, the longest wait between two consecutive reports."""
+        with self._lock:
+            return {name: max((b[0] - a[0] for a, b in itertools.pairwise(ts)), default=float("inf")) for name, ts in self.got.items()}
+
+    def close(self) -> None:
+        self.bus.close()
+
+
+MAX_REPORT_GAP_S = 1.5
+"""Reports come once a second; this allows for a busy process's scheduling and the network."""
+
+
+@pytest.mark.zenoh
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_query_and_viewer_report_their_status_every_second_and_at_stop(tmp_path):
+    from rich.console import Console
+
+    from services.launch import launch_table
+
+    services = [{"name": "router"}, {"name": "query"}, {"name": "viewer"}]
+    path = write_launch(tmp_path, services, exit_when_finished=False)
+    plan = plan_launch(path, out=None, log_dir=tmp_path / "logs")
+    sup = Supervisor(plan, status=False)
+    runner = threading.Thread(target=sup.run, daemon=True)
+    runner.start()
+    reports = None
+    try:
+        reports = ReportLog(plan.system.transport.connect[0])
+        deadline = time.monotonic() + 120
+        while not all(sup.procs[n].state == "alive" for n in ("query", "viewer")):
+            assert sup.error is None and time.monotonic() < deadline, sup.summary()
+            time.sleep(0.2)
+        time.sleep(4.5)
+        counts = {name: len(ts) for name, ts in reports.got.items()}
+        assert counts.get("query", 0) >= 3 and counts.get("viewer", 0) >= 3, counts
+        gaps = reports.gaps()
+        assert gaps["query"] <= MAX_REPORT_GAP_S and gaps["viewer"] <= MAX_REPORT_GAP_S, gaps
+        # The launcher hears them too: its table has their figures, not dashes.
+        assert sup.report("query") is not None and sup.report("query")[0].figures["synced"] is False
+        console = Console(width=300, record=True, file=__import__("io").StringIO())
+        console.print(launch_table(sup))
+        row = next(ln for ln in console.export_text().splitlines() if ln.startswith("│ query"))
+        assert row.split("│")[6].strip() != "-"  # Hz
+    finally:
+        sup.stop_event.set()
+        runner.join(timeout=120)
+        if reports is not None:
+            reports.close()
+    for name in ("query", "viewer"):
+        final = read_status(status_path(plan.log_dir, name))
+        assert final.state == "stopped" and final.service == name
+        assert {i.name for i in final.inputs} >= {"graph_delta", "graph_snapshot"}
+        assert sup.summary()["services"][name]["status"]["state"] == "stopped"
+    assert read_status(status_path(plan.log_dir, "query")).figures["snapshot_failures"] >= 1  # no fusion in this launch
+
+
+@pytest.mark.zenoh
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+def test_every_service_of_the_local_launch_reports_every_second(small, tmp_path):
+    """``trackgraph launch deploy/local.yaml`` on the small preset (on a free port): every
+    service's ServiceStatus arrives at least once a second, and at the end the source, the
+    tracker and fusion report every frame done."""
+    doc = yaml.safe_load((ROOT / "deploy" / "local.yaml").read_text())
+    port = _free_port()
+    doc.update(config=str(ROOT / "deploy" / doc["config"]), connect=[f"tcp/127.0.0.1:{port}"], listen=[f"tcp/127.0.0.1:{port}"])
+    launch_file = tmp_path / "local.yaml"
+    launch_file.write_text(yaml.safe_dump(doc))
+    out = tmp_path / "map"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "launch", str(launch_file), "--sequence", str(small), "--out", str(out), "--json"],
+        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+    )  # fmt: skip
+    reports = None
+    try:
+        reports = ReportLog(f"tcp/127.0.0.1:{port}")
+        stdout, _ = proc.communicate(timeout=800)
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            proc.wait(60)
+        if reports is not None:
+            reports.close()
+    assert proc.returncode == 0, stdout
+    summary = json.loads(stdout.strip().splitlines()[-1])
+    names = [s["name"] for s in doc["services"] if s["name"] != "router"]
+    assert sorted(reports.got) == sorted(names), sorted(reports.got)
+    gaps = reports.gaps()
+    assert all(gaps[n] <= MAX_REPORT_GAP_S for n in names), gaps
+    frames = summary["services"]["source"]["status"]["frames_expected"]
+    assert frames and frames > 10
+    for name in ("source", "tracker", "fusion"):
+        st = summary["services"][name]["status"]
+        assert (st["frames_done"], st["frames_expected"]) == (frames, frames), (name, st)

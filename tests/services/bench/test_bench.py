@@ -7,10 +7,12 @@ import json
 
 import pytest
 
-from services.bench.rate import last_stats, search_rate
+from services.bench.rate import search_rate, trial_result
 from services.bench.report import markdown, plots
 from services.bench.runs import REPO, write_variant
 from shared.config import load_config
+from shared.messages.status import InputCounters, ServiceStatus
+from shared.runtime.status import status_path, write_status
 
 
 def fake_trial(limit: float):
@@ -47,15 +49,55 @@ def test_search_with_one_trial():
     assert search_rate(trial, 4.0, 1)[0] is None
 
 
-def test_last_stats_reads_the_last_dict(tmp_path):
-    log = tmp_path / "tracker.log"
-    log.write_text(
-        "12:00 INFO tracker stopped: {'frames': 3, 'frames_in': {'dropped': 1}}\n"
-        "12:01 INFO something else {not a dict\n"
-        "12:02 INFO tracker stopped: {'frames': 9, 'frames_in': {'dropped': 4}}\n"
-    )
-    assert last_stats(log, "tracker stopped") == {"frames": 9, "frames_in": {"dropped": 4}}
-    assert last_stats(tmp_path / "missing.log", "tracker stopped") is None
+def _status(service: str, inputs: dict[str, dict] | None = None, **figures) -> ServiceStatus:
+    return ServiceStatus(service=service, pid=1, state="stopped", uptime_s=10.0,
+                         inputs=[InputCounters(name=k, **v) for k, v in (inputs or {}).items()], figures=figures)  # fmt: skip
+
+
+KEYFRAMES = {"requested": 2, "answered": 2, "masks": 2, "failed": 0, "stale": 0, "timed_out": 0,
+             "request_hz": 0.25, "answer_hz": 0.25, "latency_max_s": 1.0, "latency_mean_s": 0.5}  # fmt: skip
+
+
+def write_trial(tmp_path, *, fusion_dropped: int = 0, in_map: int = 16, skip: tuple[str, ...] = ()):
+    logs, out = tmp_path / "logs", tmp_path / "map"
+    logs.mkdir(parents=True, exist_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
+    reports = {
+        "source": _status("source", {"frame_ack": {"received": 32}}, published=16, dropped=0, rejected=0, seconds=8.0, hz=2.0, held_s=0.0),
+        "tracker": _status("tracker", {"frames": {"received": 16, "processed": 16}}, frames=16, timeouts=0, pending_keyframes=0, keyframes=KEYFRAMES),
+        "keyframe_vl": _status("keyframe_vl", {"keyframe_request": {"received": 2, "processed": 2}}, processed=2, failed=0),
+        "fusion": _status("fusion", {"tracks_frame": {"received": 16 - fusion_dropped, "dropped": fusion_dropped}}, frames=in_map, frames_in_map=in_map),
+    }
+    for name, st in reports.items():
+        if name not in skip:
+            write_status(status_path(logs, name), st)
+    (out / "run.json").write_text(json.dumps({"frames_in_map": in_map, "fused_seconds": 7.0}))
+    return logs, out
+
+
+def test_a_trial_is_judged_from_the_status_files(tmp_path):
+    logs, out = write_trial(tmp_path)
+    res, ok = trial_result(logs, out, 2.0)
+    assert ok and res["published"] == 16 and res["dropped"] == 0 and res["lost"] == 0
+    assert res["drops"] == {"source": 0, "tracker": 0, "keyframe_vl": 0, "fusion": 0}
+    assert res["frames_in_map"] == 16 and res["fused_hz"] == pytest.approx(15 / 7, abs=1e-4)
+    assert res["keyframes"] == KEYFRAMES and res["keyframes_kept_up"]
+    assert set(res) == {"rate_hz", "published", "dropped", "drops", "frames_in_map", "lost", "fused_hz", "keyframes", "keyframes_kept_up"}
+    # The map fused a frame too slowly for 3 Hz: not sustained there.
+    assert not trial_result(logs, out, 3.0)[1]
+
+
+def test_a_trial_with_a_drop_or_a_missing_report_is_not_sustained(tmp_path):
+    res, ok = trial_result(*write_trial(tmp_path / "a", fusion_dropped=1, in_map=15), 2.0)
+    assert not ok and res["drops"]["fusion"] == 1 and res["dropped"] == 1 and res["lost"] == 0
+    # A stage that wrote no report (it crashed): its drops are unknown, and so is the total.
+    res, ok = trial_result(*write_trial(tmp_path / "b", skip=("keyframe_vl",)), 2.0)
+    assert not ok and res["drops"]["keyframe_vl"] is None and res["dropped"] is None and res["lost"] is None
+    # A file that is not a report counts as none (and is logged).
+    logs, out = write_trial(tmp_path / "c")
+    status_path(logs, "tracker").write_text("{not json")
+    res, ok = trial_result(logs, out, 2.0)
+    assert not ok and res["drops"]["tracker"] is None and res["keyframes"] is None and not res["keyframes_kept_up"]
 
 
 def test_variant_is_validated_and_complete(tmp_path):

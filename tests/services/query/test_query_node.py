@@ -137,6 +137,9 @@ def test_late_join_gap_and_answers(system):
             with pytest.raises(QueryRefused, match="top_k"):
                 client.query("chair", top_k=10_000)
             assert client.query("chair", top_k=1)[0].segment == 1
+        report = node.book.report()
+        assert report.state == "running" and report.figures["gaps"] == 1 and report.figures["segments"] == 5
+        assert {i.name: i.received for i in report.inputs}["graph_delta"] == 2  # 3 and 5; 4 was lost
     finally:
         node.close()
     assert node.stats()["refused"] == 3

@@ -79,23 +79,35 @@ def test_viewer_resyncs_after_a_gap_and_records(pair, tmp_path):
     frames = TypedPublisher(a, topics.tracks_frame, TrackedFrame, robot_id="robot0")
     queryable = None
     graph = SceneGraph()
+
+    def figures() -> dict:
+        return node.book.report().figures
+
+    def inputs() -> dict:
+        return {i.name: i for i in node.book.report().inputs}
+
     try:
         assert watcher.wait_for(topics.alive("viewer"), timeout=5)
         assert deltas.wait_for_subscribers(5) and frames.wait_for_subscribers(5)
         d = _updates(graph)  # graph is now at version 6
         deltas.put(d[0])
         deltas.put(d[1])
-        assert wait_until(lambda: node.stats()["graph_seq"] == 2)
+        assert wait_until(lambda: figures()["graph_seq"] == 2)  # there from the start: no snapshot needed
+        assert figures()["synced"]
 
-        # A gap (3 lost) while no snapshot service runs: the request fails, is counted,
-        # and the replica stays at 2 until the next delta.
+        # A gap (3 lost) while no snapshot service runs: requests fail and are retried with
+        # backoff, the replica stays at 2 and the deltas that keep coming are held.
+        failed = figures()["snapshot_failures"]
         deltas.put(d[3])
-        assert wait_until(lambda: node.stats()["errors"] == 1)
-        assert node.stats()["graph_seq"] == 2 and node.stats()["need_snapshot"]
+        assert wait_until(lambda: figures()["snapshot_failures"] > failed)
+        f = figures()
+        assert f["graph_seq"] == 2 and not f["synced"] and f["gaps"] == 1
+        deltas.put(d[4])
 
-        # A bad payload is rejected by the link and changes nothing.
+        # A bad payload is rejected by the link, counted in the book, and changes nothing.
         a.put(topics.graph_delta, b"\x00not msgpack")
-        assert wait_until(lambda: node.stats()["links"][topics.graph_delta]["rejected"] == 1)
+        assert wait_until(lambda: inputs()["graph_delta"].rejected == 1)
+        assert node.stats()["links"][topics.graph_delta]["rejected"] == 1
 
         requests = []
 
@@ -104,21 +116,23 @@ def test_viewer_resyncs_after_a_gap_and_records(pair, tmp_path):
             return graph.snapshot(with_mesh=env.body.with_mesh)
 
         queryable = TypedQueryable(a, topics.graph_snapshot, SnapshotRequest, GraphSnapshot, serve, robot_id="robot0")
-        deltas.put(d[4])  # resync first (snapshot at 6), then 5 is stale
-        assert wait_until(lambda: node.stats()["snapshots"] == 1)
-        assert requests == [True]
+        # The next retry gets the snapshot at 6, which already has the held 4 and 5.
+        assert wait_until(lambda: figures()["snapshots"] == 1)
+        assert requests == [True]  # the viewer wants the mesh
         later = graph.apply_update(segments_changed=[make_segment(7, (0, 0, 0), (1, 1, 1), None)], frame_index=6)
         deltas.put(later)
-        assert wait_until(lambda: node.stats()["graph_seq"] == 7)
-        st = node.stats()
-        assert (st["deltas"], st["snapshots"], st["stale"], st["errors"]) == (3, 1, 1, 1)
+        assert wait_until(lambda: figures()["graph_seq"] == 7)
+        f = figures()
+        assert (f["deltas"], f["snapshots"], f["stale"], f["synced"]) == (3, 1, 2, True)
         assert sorted(node.replica.segments) == [0, 2, 7]
         assert node.replica.mesh is not None
 
         for k in range(4):
             frames.put(make_tracked(index=k))
-            assert wait_until(lambda k=k: node.stats()["frames_received"] == k + 1)
-        assert node.stats()["frames_logged"] == 2  # frames 0 and 2
+            assert wait_until(lambda k=k: figures()["frames_received"] == k + 1)
+        assert figures()["frames_logged"] == 2  # frames 0 and 2
+        report = node.book.report()
+        assert report.state == "running" and report.errors == 0 and inputs()["tracks_frame"].processed == 4
     finally:
         node.close()
         if queryable is not None:
