@@ -381,6 +381,11 @@ class TypedQueryable(Generic[M, R]):
         query.reply(self.key, out)
         self.stats.add("published")
 
+    def pending(self) -> int:
+        """Requests queued and not yet being answered."""
+        with self._cv:
+            return len(self._queue)
+
     def close(self) -> None:
         """Stop answering; calling it again does nothing."""
         with self._cv:
