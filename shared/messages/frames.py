@@ -36,9 +36,6 @@ class Frame(Message):
     """Pinhole intrinsics at the resolution of ``rgb``."""
     T_world_cam: Pose4
     """(4, 4) camera-to-world pose, OpenCV camera axes."""
-    instances: Labels | None = None
-    """(H, W) int32 ground-truth instance ids, only for synthetic scenes (used by the
-    simulated perception backends and by evaluation); -1 where there is none."""
 
     @field_validator("T_world_cam")
     @classmethod
@@ -56,8 +53,6 @@ class Frame(Message):
             raise ValueError(
                 f"intrinsics are for {self.intrinsics.width}x{self.intrinsics.height}, image is {w}x{h}"
             )
-        if self.instances is not None and self.instances.shape != (h, w):
-            raise ValueError(f"instances shape {self.instances.shape} differs from rgb {(h, w)}")
         return self
 
     def depth_m(self) -> Annotated[np.ndarray, "(H, W) float32 metres"]:

@@ -10,7 +10,7 @@ from pydantic import Field, model_validator
 from shared.arrays import ArraySpec
 from shared.geometry import Intrinsics
 from shared.messages.base import Message, register
-from shared.messages.frames import RGB, Depth, Labels
+from shared.messages.frames import RGB, Depth
 
 Masks = Annotated[np.ndarray, ArraySpec(("bool",), (None, None, None), kind="mask")]
 Boxes = Annotated[np.ndarray, ArraySpec(("float32",), (None, 4), finite=True)]
@@ -33,16 +33,12 @@ class KeyframeRequest(Message):
     """Depth units per metre, with ``depth``."""
     intrinsics: Intrinsics | None = None
     """Intrinsics, with ``depth``."""
-    instances: Labels | None = None
-    """(H, W) int32 ground-truth ids, for the simulated backends on synthetic scenes."""
 
     @model_validator(mode="after")
     def _sizes(self) -> KeyframeRequest:
         hw = self.rgb.shape[:2]
-        for name in ("depth", "instances"):
-            a = getattr(self, name)
-            if a is not None and a.shape != hw:
-                raise ValueError(f"{name} shape {a.shape} differs from rgb {hw}")
+        if self.depth is not None and self.depth.shape != hw:
+            raise ValueError(f"depth shape {self.depth.shape} differs from rgb {hw}")
         if self.depth is not None and self.depth_scale is None:
             raise ValueError("depth needs depth_scale")
         return self
