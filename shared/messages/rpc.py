@@ -8,7 +8,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from shared.arrays import ArraySpec
-from shared.messages.base import Message, register
+from shared.messages.base import METRES, Message, register
 from shared.messages.frames import RGB
 from shared.messages.graph import Vec3
 from shared.messages.keyframes import Vector
@@ -33,6 +33,7 @@ class EmbedRequest(Message):
 
     @model_validator(mode="after")
     def _one(self) -> EmbedRequest:
+        """Exactly one of ``text`` (not blank) and ``image`` (with pixels)."""
         _one_of_text_or_image(self.text, self.image)
         return self
 
@@ -59,15 +60,16 @@ class QueryRequest(Message):
     """Results wanted; the service caps it."""
     room: int | None = None
     """Only segments in this room."""
-    center: Vec3 | None = None
+    center: Annotated[Vec3 | None, METRES] = None
     """With radius: only segments whose centroid lies within radius of this point."""
-    radius: float | None = Field(None, gt=0)
+    radius: Annotated[float | None, METRES] = Field(None, gt=0)
     """Radius around center (m)."""
     gallery: Literal["max", "mean"] | None = None
     """Override the service's gallery scoring."""
 
     @model_validator(mode="after")
     def _valid(self) -> QueryRequest:
+        """Exactly one of ``text`` (not blank) and ``image`` (with pixels); ``center`` and ``radius`` go together."""
         _one_of_text_or_image(self.text, self.image)
         if (self.center is None) != (self.radius is None):
             raise ValueError("center and radius go together")
@@ -80,11 +82,11 @@ class QueryHit(Message):
     """Segment id."""
     score: float
     """Eq. 10 score."""
-    centroid: Vec3
+    centroid: Annotated[Vec3, METRES]
     """Centroid (m, world)."""
-    bbox_min: Vec3
+    bbox_min: Annotated[Vec3, METRES]
     """Box corner."""
-    bbox_max: Vec3
+    bbox_max: Annotated[Vec3, METRES]
     """Box corner."""
     room: int | None = None
     """Room id."""
