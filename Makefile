@@ -29,6 +29,12 @@ test: $(STAMP) lint
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache benchmarks/out
 
+# docs/wire.md and docs/schema/*.json from the message models; `make wire-docs` after changing a
+# message, a key or the codec (tests/shared/messages/test_wiredoc.py fails until then).
+.PHONY: wire-docs
+wire-docs: $(STAMP)
+	$(BIN)/python -m shared.messages.wiredoc
+
 # The demo: the synthetic demo scene (three furnished rooms, 900 RGB-D frames with ground
 # truth) through the whole distributed system (one process per service over loopback Zenoh),
 # example queries through the live query service, then the report, renders and recordings.

@@ -98,9 +98,9 @@ def synth_frames(n: int) -> tuple[Any, str]:
 
     def frames() -> Iterator[Frame]:
         for i in range(n):
-            f = reader.frame(i)
+            f, instances = reader.frame(i), reader.instances(i)
             depth = f.depth.astype(np.float32) / np.float32(f.depth_scale)
-            tracks = f.instances if f.instances is not None else np.full(depth.shape, -1, np.int32)
+            tracks = instances if instances is not None else np.full(depth.shape, -1, np.int32)
             yield depth, f.rgb, tracks.astype(np.int32), f.intrinsics, f.T_world_cam
 
     return frames, f"synth demo preset (seed 0), {n} frames, {folder.name}"

@@ -17,6 +17,7 @@ Writes benchmarks/out/keyframe_vl.json and prints a table.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import platform
@@ -34,6 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from shared.codec import encode  # noqa: E402
 from shared.config import CodecConfig  # noqa: E402
 from shared.config.keyframe_vl import SegmenterConfig, VLEncoderConfig  # noqa: E402
+from shared.datasets.ground_truth import StaticGroundTruth  # noqa: E402
 from shared.messages import KeyframeMasks, MaskFeatures  # noqa: E402
 from shared.perception import KeyframeImage, Masks  # noqa: E402
 
@@ -41,7 +43,19 @@ log = logging.getLogger("bench.keyframe_vl")
 OUT = Path(__file__).resolve().parent / "out"
 
 
-def frames(seq: Path, n: int, size: tuple[int, int]) -> list[KeyframeImage]:
+@dataclasses.dataclass(frozen=True)
+class Keyframe(KeyframeImage):
+    """A resized keyframe with its resized ground truth, which the simulated backends get
+    through a :class:`StaticGroundTruth` (no message or KeyframeImage carries it)."""
+
+    instances: np.ndarray | None = None
+
+
+def ground_truth(imgs: list[Keyframe]) -> StaticGroundTruth:
+    return StaticGroundTruth({img.frame_index: img.instances for img in imgs})
+
+
+def frames(seq: Path, n: int, size: tuple[int, int]) -> list[Keyframe]:
     from PIL import Image
 
     from shared.datasets import open_sequence
@@ -52,13 +66,13 @@ def frames(seq: Path, n: int, size: tuple[int, int]) -> list[KeyframeImage]:
     for i in np.linspace(0, len(reader) - 1, n).astype(int):
         f = reader.frame(int(i))
         rgb = np.asarray(Image.fromarray(f.rgb).resize((w, h), Image.BILINEAR))
-        inst = np.asarray(Image.fromarray(f.instances.astype(np.int32)).resize((w, h), Image.NEAREST)).astype(np.int32)
+        inst = np.asarray(Image.fromarray(reader.instances(int(i)).astype(np.int32)).resize((w, h), Image.NEAREST)).astype(np.int32)
         depth = np.asarray(Image.fromarray(f.depth_m()).resize((w, h), Image.NEAREST)).astype(np.float32)
-        out.append(KeyframeImage(frame_index=int(i), rgb=rgb, depth_m=depth, intrinsics=f.intrinsics.scaled(w, h), instances=inst))
+        out.append(Keyframe(frame_index=int(i), rgb=rgb, depth_m=depth, intrinsics=f.intrinsics.scaled(w, h), instances=inst))
     return out
 
 
-def gt_masks(img: KeyframeImage, min_px: int) -> Masks:
+def gt_masks(img: Keyframe, min_px: int) -> Masks:
     ids, counts = np.unique(img.instances[img.instances >= 0], return_counts=True)
     ids = ids[counts >= min_px]
     m = img.instances[None] == ids[:, None, None]
@@ -73,12 +87,14 @@ def _sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def run_case(name: str, seg_cfg: SegmenterConfig, vl_cfg: VLEncoderConfig, imgs: list[KeyframeImage], device: str, fp16: bool, warmup: int) -> dict:
+def run_case(name: str, seg_cfg: SegmenterConfig, vl_cfg: VLEncoderConfig, imgs: list[Keyframe], device: str, fp16: bool, warmup: int) -> dict:
     from services.keyframe_vl.encoders import make_vl_encoder
     from services.keyframe_vl.segmenters import make_segmenter
+    from services.keyframe_vl.segmenters.simulated import SimulatedSegmenter
 
-    seg = make_segmenter(seg_cfg, device=device, fp16=fp16)
-    enc = make_vl_encoder(vl_cfg, device=device, fp16=fp16)
+    truth = ground_truth(imgs)
+    seg = SimulatedSegmenter(seg_cfg, truth) if seg_cfg.backend == "simulated" else make_segmenter(seg_cfg, device=device, fp16=fp16)
+    enc = make_vl_encoder(vl_cfg, device=device, fp16=fp16, ground_truth=truth)
     t_seg, t_clip, n_masks, n_crops, mask_bits, mask_rle, feat_bytes = [], [], [], [], [], [], []
     for k, img in enumerate(imgs):
         _sync(device)

@@ -64,9 +64,10 @@ def pick_queries(seq: Path, n: int = TEXT_QUERIES) -> list[str]:
     return [name for name, _ in sorted(sizes.items(), key=lambda kv: (-kv[1], kv[0]))][:n]
 
 
-def image_query(seq: Path, out_png: Path) -> tuple[np.ndarray, np.ndarray, str]:
-    """A crop around the largest furniture object of a frame mid-sequence, with its
-    ground-truth ids (the simulated encoder embeds images from them), and that object's name."""
+def image_query(seq: Path, out_png: Path) -> tuple[np.ndarray, str]:
+    """A crop around the largest furniture object of a frame mid-sequence, and that object's
+    name. The query sends only the crop's pixels: the simulated encoder finds the crop in the
+    sequence and reads its ground truth there."""
     from PIL import Image
 
     from shared.datasets import open_sequence
@@ -75,18 +76,20 @@ def image_query(seq: Path, out_png: Path) -> tuple[np.ndarray, np.ndarray, str]:
     gt = load_gt(seq / "gt")
     keep = {int(o) for o in gt.evaluated_object_ids(EXCLUDED_LABELS)}
     reader = open_sequence(seq, "replica")
-    frame = reader.frame(len(reader) // 3)
-    inst = np.asarray(frame.instances)
+    i = len(reader) // 3
+    rgb_full, inst = reader.rgb(i), reader.instances(i)
+    if inst is None:
+        raise ValueError(f"{seq}: frame {i} has no ground-truth instances (instances/ folder)")
     ids, counts = np.unique(inst[np.isin(inst, list(keep))], return_counts=True)
     oid = int(ids[counts.argmax()])
     ys, xs = np.nonzero(inst == oid)
     pad = 12
     y0, y1 = max(int(ys.min()) - pad, 0), min(int(ys.max()) + pad + 1, inst.shape[0])
     x0, x1 = max(int(xs.min()) - pad, 0), min(int(xs.max()) + pad + 1, inst.shape[1])
-    rgb = np.ascontiguousarray(frame.rgb[y0:y1, x0:x1])
+    rgb = np.ascontiguousarray(rgb_full[y0:y1, x0:x1])
     out_png.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(rgb).save(out_png)
-    return rgb, np.ascontiguousarray(inst[y0:y1, x0:x1]).astype(np.int32), gt.objects[oid].name() or f"object {oid}"
+    return rgb, gt.objects[oid].name() or f"object {oid}"
 
 
 def _git_commit() -> str:
@@ -126,14 +129,14 @@ def run_demo(out: Path, *, preset: str = "demo", seed: int = 0, config: Path | N
             time.sleep(0.5)
         timings["distributed_map_s"] = time.perf_counter() - t1
         texts = pick_queries(seq)
-        crop, crop_ids, crop_name = image_query(seq, out / "queries" / "image_query.png")
+        crop, crop_name = image_query(seq, out / "queries" / "image_query.png")
         with QueryClient(plan.system.transport, robot_id=plan.system.robot_id, timeout_s=30) as client:
             for text in texts:
                 q0 = time.perf_counter()
                 hits = client.query(text, top_k=3)
                 queries.append({"query": text, "kind": "text", "ms": 1e3 * (time.perf_counter() - q0), "hits": hits})
             q0 = time.perf_counter()
-            hits = client.query(image=crop, instances=crop_ids, top_k=3)
+            hits = client.query(image=crop, top_k=3)
             queries.append({"query": f"image of a {crop_name}", "kind": "image", "ms": 1e3 * (time.perf_counter() - q0), "hits": hits, "image": "queries/image_query.png"})
     finally:
         sup.stop_event.set()

@@ -28,13 +28,9 @@ log = logging.getLogger(__name__)
 
 
 def prepare_config(cfg: TrackGraphConfig, seq_dir: Path) -> TrackGraphConfig:
-    """Point the simulated VL encoder at the sequence's ground truth when none is set."""
-    vl = cfg.keyframe_vl.vl
-    if vl.backend == "simulated" and vl.ground_truth is None and (Path(seq_dir) / "gt").is_dir():
-        data = cfg.model_dump()
-        data["keyframe_vl"]["vl"]["ground_truth"] = str(Path(seq_dir) / "gt")
-        return TrackGraphConfig.model_validate(data)
-    return cfg
+    """Point every simulated backend whose ground truth is unset at the sequence, when it is
+    synthetic (no message carries ground truth; see ``TrackGraphConfig.with_ground_truth``)."""
+    return cfg.with_ground_truth(seq_dir)
 
 
 def build_tracker(cfg: TrackGraphConfig, with_keyframes: bool = True):
@@ -47,7 +43,7 @@ def build_tracker(cfg: TrackGraphConfig, with_keyframes: bool = True):
         from services.tracker.oracle import GroundTruthTracker
 
         encoder = make_vl_encoder(cfg.keyframe_vl.vl, device=resolve_device(cfg.keyframe_vl.device))
-        return GroundTruthTracker(cfg.tracker.keyframe_interval, encoder, cfg.tracker.oracle_retire_frames), None
+        return GroundTruthTracker(cfg.tracker.keyframe_interval, encoder, cfg.tracker.oracle_retire_frames, ground_truth=cfg.tracker.ground_truth), None
     from services.tracker.core import TrackerCore
     from services.tracker.features import make_dense_features
 

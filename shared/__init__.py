@@ -3,5 +3,6 @@
 Nothing here imports torch, and only :mod:`shared.transport` imports zenoh.
 """
 
-SCHEMA_VERSION = 1
-"""Wire schema version carried by every envelope; bumped on incompatible message changes."""
+SCHEMA_VERSION = 2
+"""Wire schema version carried by every envelope; bumped on incompatible message changes
+(2: ground truth left the wire, no message has an ``instances`` field)."""

@@ -12,14 +12,14 @@ from shared.geometry import Intrinsics
 
 @dataclass(frozen=True)
 class KeyframeImage:
-    """One keyframe as the perception backends see it."""
+    """One keyframe as the perception backends see it. It carries no ground truth: the
+    simulated backends read theirs by ``frame_index`` from the source they were made with
+    (:mod:`shared.datasets.ground_truth`)."""
 
     frame_index: int
     rgb: Annotated[np.ndarray, "(H, W, 3) uint8"]
     depth_m: Annotated[np.ndarray, "(H, W) float32 metres, 0 = none"] | None = None
     intrinsics: Intrinsics | None = None
-    instances: Annotated[np.ndarray, "(H, W) int32 ground-truth ids, -1 = none"] | None = None
-    """Only on synthetic scenes; the simulated backends need it."""
 
 
 @dataclass(frozen=True)
@@ -61,6 +61,6 @@ class VLEncoder(Protocol):
     def encode_text(self, texts: list[str]) -> Annotated[np.ndarray, "(N, D) float32"]:
         ...
 
-    def encode_image(self, rgb: Annotated[np.ndarray, "(H, W, 3) uint8"], instances: np.ndarray | None = None) -> Annotated[np.ndarray, "(D,) float32"]:
+    def encode_image(self, rgb: Annotated[np.ndarray, "(H, W, 3) uint8"]) -> Annotated[np.ndarray, "(D,) float32"]:
         """A whole image (an image query)."""
         ...

@@ -35,7 +35,7 @@ def resolve_device(device: str) -> str:
 
 def keyframe_image(req: KeyframeRequest) -> KeyframeImage:
     depth = None if req.depth is None else req.depth.astype(np.float32) / np.float32(req.depth_scale)
-    return KeyframeImage(frame_index=req.frame_index, rgb=req.rgb, depth_m=depth, intrinsics=req.intrinsics, instances=req.instances)
+    return KeyframeImage(frame_index=req.frame_index, rgb=req.rgb, depth_m=depth, intrinsics=req.intrinsics)
 
 
 class KeyframeVLCore:

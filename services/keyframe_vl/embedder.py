@@ -55,12 +55,14 @@ class Embedder:
         return self._cache.get(text, lambda: np.asarray(self.encoder.encode_text([text])[0], np.float32))
 
     def embed(self, req: EmbedRequest) -> EmbedReply:
-        """Text or image to the encoder's space; failures come back as an error reply."""
+        """Text or image to the encoder's space; failures come back as an error reply that
+        names the request's field."""
         try:
             if req.text is not None:
                 vec = self.embed_text(req.text)
             else:
-                vec = np.asarray(self.encoder.encode_image(req.image, req.instances), np.float32)
+                vec = np.asarray(self.encoder.encode_image(req.image), np.float32)
         except (ValueError, RuntimeError) as exc:
-            return EmbedReply(model=self.encoder.name, error=str(exc))
+            field = "text" if req.text is not None else "image"
+            return EmbedReply(model=self.encoder.name, error=f"{type(req).__name__}.{field}: {exc}")
         return EmbedReply(embedding=vec, model=self.encoder.name)

@@ -34,14 +34,14 @@ def eval_segmenter(seq_dir: Path, cfg: TrackGraphConfig, *, every: int | None = 
     per_frame = []
     seconds = []
     for i in range(0, len(reader), step):
-        frame = reader.frame(i)
-        if frame.instances is None:
+        frame, instances = reader.frame(i), reader.instances(i)
+        if instances is None:
             raise ValueError(f"{seq_dir}: frame {i} has no ground-truth instances (instances/ folder)")
-        image = KeyframeImage(frame.frame_index, frame.rgb, frame.depth_m(), frame.intrinsics, frame.instances)
+        image = KeyframeImage(frame.frame_index, frame.rgb, frame.depth_m(), frame.intrinsics)
         t0 = time.perf_counter()
         masks = segmenter.segment(image)
         seconds.append(time.perf_counter() - t0)
-        mean, per_obj = mean_best_iou(masks.masks, frame.instances)
+        mean, per_obj = mean_best_iou(masks.masks, instances)
         ious.extend(per_obj.values())
         per_frame.append({"frame": i, "masks": len(masks), "objects": len(per_obj), "mean_best_iou": None if math.isnan(mean) else mean})
     result = {

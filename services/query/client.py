@@ -48,7 +48,6 @@ class QueryClient:
         text: str | None = None,
         *,
         image: Annotated[np.ndarray, "(H, W, 3) uint8"] | None = None,
-        instances: Annotated[np.ndarray, "(H, W) int32, synthetic scenes only"] | None = None,
         top_k: int | None = None,
         room: int | None = None,
         center: Annotated[np.ndarray, "(3,) float world metres"] | None = None,
@@ -57,7 +56,7 @@ class QueryClient:
     ) -> list[QueryHit]:
         """Ranked segments for a text or an image; raises QueryRefused or TransportError."""
         req = QueryRequest(
-            text=text, image=image, instances=instances, top_k=top_k, room=room, radius=radius, gallery=gallery,
+            text=text, image=image, top_k=top_k, room=room, radius=radius, gallery=gallery,
             center=None if center is None else np.asarray(center, np.float64),
         )  # fmt: skip
         reply = self.ask(req)

@@ -183,7 +183,7 @@ class QueryEngine:
         """The ranked segments, or a reply carrying the reason it was refused."""
         try:
             self.check(req)
-            hits = self.rank(index, req, self.embed(EmbedRequest(text=req.text, image=req.image, instances=req.instances)))
+            hits = self.rank(index, req, self.embed(EmbedRequest(text=req.text, image=req.image)))
         except QueryError as exc:
             return QueryReply(graph_seq=index.graph_seq, error=str(exc))
         return QueryReply(graph_seq=index.graph_seq, hits=hits)

@@ -199,7 +199,6 @@ class TrackerCore:
             depth=frame.depth,
             depth_scale=frame.depth_scale,
             intrinsics=frame.intrinsics,
-            instances=frame.instances,
         )
 
     def end_frame(self) -> TrackedFrame:

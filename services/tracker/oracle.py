@@ -2,14 +2,20 @@
 instances, and an object keeps its track while in view. It isolates the fusion stages from
 tracking errors (``tracker.mode: ground_truth``, ground-truth tracked frames) and gives the upper bound of the
 mapping. Like a real tracker it can retire a track whose object left the view and start a
-new one when it returns, which is what long-term re-identification must merge."""
+new one when it returns, which is what long-term re-identification must merge.
+
+The identities come from an :class:`~shared.datasets.ground_truth.InstanceSource` (by default
+the sequence folder of ``tracker.ground_truth``), read by frame index: a :class:`Frame`
+carries no ground truth."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Annotated
 
 import numpy as np
 
+from shared.datasets.ground_truth import GroundTruthError, InstanceSource, SequenceGroundTruth
 from shared.messages.frames import Frame, TrackedFrame, TrackObservation
 from shared.messages.keyframes import TrackFeature, TrackFeatures
 from shared.perception import KeyframeImage, Masks, VLEncoder
@@ -27,7 +33,18 @@ def identity_feature(track_id: int, dim: int = DINO_DIM) -> Annotated[np.ndarray
 class GroundTruthTracker:
     """Same call protocol as :class:`services.tracker.core.TrackerCore`, minus the masks."""
 
-    def __init__(self, keyframe_interval: int = 24, encoder: VLEncoder | None = None, retire_frames: int = 0) -> None:
+    def __init__(
+        self,
+        keyframe_interval: int = 24,
+        encoder: VLEncoder | None = None,
+        retire_frames: int = 0,
+        ground_truth: InstanceSource | str | Path | None = None,
+    ) -> None:
+        """``ground_truth`` is the source of each frame's instance ids, or the sequence folder
+        to read them from (``tracker.ground_truth``)."""
+        if ground_truth is None or isinstance(ground_truth, (str, Path)):
+            ground_truth = SequenceGroundTruth(ground_truth, field="tracker.ground_truth", user="ground_truth tracker")
+        self.ground_truth = ground_truth
         self.keyframe_interval = keyframe_interval
         self.encoder = encoder
         self.retire_frames = retire_frames
@@ -42,10 +59,17 @@ class GroundTruthTracker:
         self._frame: Frame | None = None
 
     def begin_frame(self, frame: Frame) -> None:
-        if frame.instances is None:
-            raise ValueError(f"frame {frame.frame_index} has no ground-truth instances; the ground_truth tracker needs a synthetic sequence")
+        try:
+            instances = np.asarray(self.ground_truth.frame_instances(frame.frame_index))
+        except GroundTruthError as exc:
+            raise GroundTruthError(f"Frame {frame.frame_index}: the ground_truth tracker has no ground truth: {exc}") from None
+        if instances.shape != frame.depth.shape:
+            raise GroundTruthError(
+                f"Frame {frame.frame_index}: the ground-truth instances are {instances.shape[1]}x{instances.shape[0]} but the frame "
+                f"is {frame.depth.shape[1]}x{frame.depth.shape[0]}: is tracker.ground_truth the sequence being replayed?"
+            )
         self._frame = frame
-        objects = [int(i) for i in np.unique(frame.instances) if i >= 0]
+        objects = [int(i) for i in np.unique(instances) if i >= 0]
         for obj in objects:
             gone = self.count - self.last_seen.get(obj, self.count)
             if obj not in self.track_of or (self.retire_frames and gone > self.retire_frames):
@@ -57,21 +81,21 @@ class GroundTruthTracker:
         lut = np.full(max(objects, default=0) + 1, -1, np.int32)
         for obj in objects:
             lut[obj] = self.track_of[obj]
-        self._labels = np.where(frame.instances >= 0, lut[np.maximum(frame.instances, 0)], -1).astype(np.int32)
+        self._labels = np.where(instances >= 0, lut[np.maximum(instances, 0)], -1).astype(np.int32)
         if self.encoder is not None and self.count % self.keyframe_interval == 0:
-            self._embed(frame, objects)
+            self._embed(frame, instances, objects)
         self.count += 1
         return None
 
-    def _embed(self, frame: Frame, ids: list[int]) -> None:
-        masks = frame.instances[None] == np.asarray(ids)[:, None, None]
+    def _embed(self, frame: Frame, instances: np.ndarray, ids: list[int]) -> None:
+        masks = instances[None] == np.asarray(ids)[:, None, None]
         keep = masks.reshape(len(ids), -1).sum(1) >= 50
         if not keep.any():
             return
         ids = [i for i, k in zip(ids, keep, strict=True) if k]
         masks = masks[keep]
         boxes = np.stack([_box(m) for m in masks]).astype(np.float32)
-        image = KeyframeImage(frame_index=frame.frame_index, rgb=frame.rgb, depth_m=frame.depth_m(), intrinsics=frame.intrinsics, instances=frame.instances)
+        image = KeyframeImage(frame_index=frame.frame_index, rgb=frame.rgb, depth_m=frame.depth_m(), intrinsics=frame.intrinsics)
         feats = self.encoder.encode_crops(image, Masks(masks, boxes, np.ones(len(ids), np.float32)))
         for obj, f in zip(ids, feats, strict=True):
             tid = self.track_of[obj]

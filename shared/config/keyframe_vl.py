@@ -89,6 +89,10 @@ class SegmenterConfig(StrictModel):
     """Noise of the ``simulated`` backend; all zeros reproduces the ground truth."""
     seed: int = 0
     """Seed of the ``simulated`` backend's noise, combined with the frame index."""
+    ground_truth: str | None = None
+    """``simulated`` backend only: the synthetic sequence folder (``SEQ_DIR`` with
+    ``instances/``) whose instance images it reads by keyframe index. ``trackgraph map``,
+    ``launch`` and ``serve --sequence`` set it to the sequence when unset."""
     classical: ClassicalSegmenterConfig = Field(default_factory=ClassicalSegmenterConfig)
     """Knobs of the ``classical`` backend."""
 
@@ -109,8 +113,11 @@ class VLEncoderConfig(StrictModel):
     noise_std: float = Field(0.05, ge=0)
     """Gaussian noise added by the ``simulated`` encoder before normalisation."""
     ground_truth: str | None = None
-    """A synthetic sequence's ``gt`` folder: the labels the ``simulated`` encoder mixes.
-    ``trackgraph map`` and ``launch`` set it to ``SEQ_DIR/gt`` when unset."""
+    """``simulated`` backend only: the synthetic sequence folder (``SEQ_DIR``; its ``gt/``
+    subfolder is accepted too). The encoder mixes the labels of ``gt/gt_categories.json`` by
+    the instance images of ``instances/``, read by keyframe index for crops and by pixel
+    content for image queries. ``trackgraph map``, ``launch`` and ``serve --sequence`` set it
+    to the sequence when unset."""
 
 
 class KeyframeVLConfig(StrictModel):

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from pydantic import Field, field_validator
 
-from shared.config.base import StrictModel, load_model
+from shared.config.base import ConfigError, StrictModel, load_model
 from shared.config.fusion import FusionConfig
 from shared.config.keyframe_vl import KeyframeVLConfig
 from shared.config.query import QueryConfig
@@ -42,6 +42,41 @@ class TrackGraphConfig(StrictModel):
         if not ROBOT_ID.match(v):
             raise ValueError("robot_id must be 1-64 characters of letters, digits, '_' or '-'")
         return v
+
+    def ground_truth_fields(self) -> list[tuple[str, str | None]]:
+        """(config key, value) of the ``ground_truth`` folder of every simulated backend this
+        config uses: the simulated segmenter, the simulated VL encoder, the ground_truth tracker."""
+        kvl = self.keyframe_vl
+        fields = []
+        if kvl.segmenter.backend == "simulated":
+            fields.append(("keyframe_vl.segmenter.ground_truth", kvl.segmenter.ground_truth))
+        if kvl.vl.backend == "simulated":
+            fields.append(("keyframe_vl.vl.ground_truth", kvl.vl.ground_truth))
+        if self.tracker.mode == "ground_truth":
+            fields.append(("tracker.ground_truth", self.tracker.ground_truth))
+        return fields
+
+    def with_ground_truth(self, seq_dir: str | Path) -> TrackGraphConfig:
+        """This config with every unset ``ground_truth`` of :meth:`ground_truth_fields` set to
+        the sequence ``seq_dir`` (absolute, since the resolved config is saved with the map and
+        read from elsewhere), when the sequence is synthetic (has ``instances/``). A
+        ``ground_truth`` that is set must be a folder: ConfigError naming the key otherwise."""
+        seq = Path(seq_dir)
+        data = self.model_dump()
+        changed = False
+        for key, value in self.ground_truth_fields():
+            if value is not None:
+                if not Path(value).expanduser().is_dir():
+                    raise ConfigError(f"{key}: {value} is not a folder (the simulated backend needs a synthetic sequence with instances/)")
+                continue
+            if (seq / "instances").is_dir():
+                *parents, leaf = key.split(".")
+                node = data
+                for part in parents:
+                    node = node[part]
+                node[leaf] = str(seq.resolve())
+                changed = True
+        return TrackGraphConfig.model_validate(data) if changed else self
 
 
 def load_config(path: str | Path) -> TrackGraphConfig:

@@ -102,5 +102,9 @@ class TrackerConfig(StrictModel):
     """ground_truth mode only: an object unseen for this many frames gets a new track id when
     it comes back, as a real tracker retires tracks that leave the view (III-B), so long-term
     re-identification has revisits to merge. 0 keeps one id per object for ever."""
+    ground_truth: str | None = None
+    """ground_truth mode only: the synthetic sequence folder (``SEQ_DIR`` with
+    ``instances/``) whose instance images give each frame's identities, by frame index.
+    ``trackgraph map``, ``launch`` and ``serve --sequence`` set it to the sequence when unset."""
     device: Literal["auto", "cpu", "cuda"] = "auto"
     """Torch device; auto takes CUDA when present."""

@@ -10,6 +10,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from pathlib import Path
 from types import TracebackType
+from typing import Annotated
 
 import numpy as np
 
@@ -38,7 +39,13 @@ class SequenceReader(ABC):
 
     @abstractmethod
     def frame(self, i: int) -> Frame:
-        """Load frame ``i`` (RGB, depth, intrinsics, pose; ground-truth instances if any)."""
+        """Load frame ``i`` (RGB, depth, intrinsics, pose)."""
+
+    def instances(self, i: int) -> Annotated[np.ndarray, "(H, W) int32 object id, -1 = none"] | None:
+        """Ground-truth instance ids of frame ``i`` where the dataset has them (synthetic
+        sequences), else None. Evaluation and the simulated perception backends read them here:
+        ground truth never travels in a :class:`Frame`."""
+        return None
 
     def __iter__(self) -> Iterator[Frame]:
         for i in range(len(self)):

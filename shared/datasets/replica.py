@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import re
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 
@@ -115,19 +116,25 @@ class ReplicaReader(SequenceReader):
             raise DatasetError(str(pose))
         return pose
 
+    @property
+    def has_instances(self) -> bool:
+        """True if the sequence has ground-truth instance images (``instances/``)."""
+        return self._instances is not None
+
+    def rgb(self, i: int) -> Annotated[np.ndarray, "(H, W, 3) uint8"]:
+        """The colour image of frame ``i`` alone (the ground-truth image index reads no depth)."""
+        check_index(i, len(self))
+        rgb = read_rgb(self._rgb[i])
+        check_size(self._rgb[i], rgb, self.intrinsics.width, self.intrinsics.height, f"the intrinsics' size (from {self._intrinsics_from})")
+        return rgb
+
     def frame(self, i: int) -> Frame:
         check_index(i, len(self))
         pose = self.pose(i)
         K = self.intrinsics
-        rgb = read_rgb(self._rgb[i])
-        check_size(self._rgb[i], rgb, K.width, K.height, f"the intrinsics' size (from {self._intrinsics_from})")
+        rgb = self.rgb(i)
         depth = read_uint16(self._depth[i])
         check_size(self._depth[i], depth, K.width, K.height, f"the colour image {self._rgb[i].name}")
-        instances = None
-        if self._instances is not None:
-            ids = read_uint16(self._instances[i], "instance")
-            check_size(self._instances[i], ids, K.width, K.height, f"the colour image {self._rgb[i].name}")
-            instances = ids.astype(np.int32) - 1
         return Frame(
             frame_index=i,
             time_s=self._numbers[i] / NOMINAL_HZ,
@@ -136,5 +143,13 @@ class ReplicaReader(SequenceReader):
             depth_scale=self.depth_scale,
             intrinsics=K,
             T_world_cam=pose,
-            instances=instances,
         )
+
+    def instances(self, i: int) -> Annotated[np.ndarray, "(H, W) int32 object id, -1 = none"] | None:
+        check_index(i, len(self))
+        if self._instances is None:
+            return None
+        K = self.intrinsics
+        ids = read_uint16(self._instances[i], "instance")
+        check_size(self._instances[i], ids, K.width, K.height, f"the colour image {self._rgb[i].name}")
+        return ids.astype(np.int32) - 1

@@ -16,6 +16,19 @@ class Message(BaseModel):
     model_config = ConfigDict(extra="forbid", arbitrary_types_allowed=True, frozen=False)
 
 
+@dataclass(frozen=True)
+class Units:
+    """The physical units of a field, as metadata: ``Annotated[float, Units("m")]``.
+    ``docs/wire.md`` and the JSON Schemas (``x-units``) show them; validation ignores them."""
+
+    units: str
+
+
+METRES = Units("m")
+SECONDS = Units("s")
+PIXELS = Units("px")
+
+
 M = TypeVar("M", bound=BaseModel)
 
 

@@ -9,7 +9,7 @@ from pydantic import Field, field_validator, model_validator
 
 from shared.arrays import ArraySpec
 from shared.geometry import Intrinsics, is_rigid
-from shared.messages.base import Message, register
+from shared.messages.base import SECONDS, Message, Units, register
 
 RGB = Annotated[np.ndarray, ArraySpec(("uint8",), (None, None, 3), kind="rgb")]
 Depth = Annotated[np.ndarray, ArraySpec(("uint16",), (None, None), kind="depth")]
@@ -20,35 +20,35 @@ Pose4 = Annotated[np.ndarray, ArraySpec(("float64",), (4, 4), finite=True)]
 
 @register
 class Frame(Message):
-    """One RGB-D observation with its pose (``frames``; fields and limits in docs/wire.md)."""
+    """One RGB-D observation with its pose (``frames``)."""
 
     frame_index: int = Field(ge=0)
     """Index of the frame in its sequence (after striding, the original index)."""
-    time_s: float = 0.0
+    time_s: Annotated[float, SECONDS] = 0.0
     """Capture time in seconds."""
     rgb: RGB
     """(H, W, 3) uint8 colour image."""
-    depth: Depth
+    depth: Annotated[Depth, Units("1 / depth_scale m")]
     """(H, W) uint16 depth; metres = depth / depth_scale; 0 means no reading."""
-    depth_scale: float = Field(gt=0)
+    depth_scale: Annotated[float, Units("1 / m")] = Field(gt=0)
     """Depth units per metre (Replica 6553.5, TUM 5000, millimetres 1000)."""
     intrinsics: Intrinsics
     """Pinhole intrinsics at the resolution of ``rgb``."""
-    T_world_cam: Pose4
-    """(4, 4) camera-to-world pose, OpenCV camera axes."""
-    instances: Labels | None = None
-    """(H, W) int32 ground-truth instance ids, only for synthetic scenes (used by the
-    simulated perception backends and by evaluation); -1 where there is none."""
+    T_world_cam: Annotated[Pose4, Units("m (translation)")]
+    """(4, 4) camera-to-world pose, OpenCV camera axes (x right, y down, z forward)."""
 
     @field_validator("T_world_cam")
     @classmethod
     def _rigid(cls, v: np.ndarray) -> np.ndarray:
+        """``T_world_cam`` is a rigid transform: an orthonormal rotation with determinant 1 and last row 0 0 0 1,
+        each within 1e-3."""
         if not is_rigid(v):
             raise ValueError("T_world_cam is not a rigid transform")
         return v
 
     @model_validator(mode="after")
     def _sizes(self) -> Frame:
+        """``depth`` is the size of ``rgb``, and ``intrinsics`` are for that size."""
         h, w = self.rgb.shape[:2]
         if self.depth.shape != (h, w):
             raise ValueError(f"depth shape {self.depth.shape} differs from rgb {(h, w)}")
@@ -56,8 +56,6 @@ class Frame(Message):
             raise ValueError(
                 f"intrinsics are for {self.intrinsics.width}x{self.intrinsics.height}, image is {w}x{h}"
             )
-        if self.instances is not None and self.instances.shape != (h, w):
-            raise ValueError(f"instances shape {self.instances.shape} differs from rgb {(h, w)}")
         return self
 
     def depth_m(self) -> Annotated[np.ndarray, "(H, W) float32 metres"]:
@@ -121,6 +119,7 @@ class TrackedFrame(Message):
 
     @model_validator(mode="after")
     def _consistent(self) -> TrackedFrame:
+        """``track_ids`` (and ``confidence``) are the size of the frame; ``tracks`` lists no track id twice."""
         if self.track_ids.shape != self.frame.depth.shape:
             raise ValueError(f"track_ids shape {self.track_ids.shape} differs from the frame {self.frame.depth.shape}")
         if self.confidence is not None and self.confidence.shape != self.track_ids.shape:

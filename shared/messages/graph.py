@@ -8,7 +8,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from shared.arrays import ArraySpec
-from shared.messages.base import Message, register
+from shared.messages.base import METRES, Message, register
 from shared.messages.keyframes import FeatureRows, Vector
 
 Vec3 = Annotated[np.ndarray, ArraySpec(("float64",), (3,), finite=True)]
@@ -23,11 +23,11 @@ class SegmentNode(Message):
 
     id: int = Field(ge=0)
     """Segment id, stable for the life of the map."""
-    centroid: Vec3
+    centroid: Annotated[Vec3, METRES]
     """Centroid of its vertices (m, world)."""
-    bbox_min: Vec3
+    bbox_min: Annotated[Vec3, METRES]
     """Axis-aligned box corner (m, world)."""
-    bbox_max: Vec3
+    bbox_max: Annotated[Vec3, METRES]
     """Axis-aligned box corner (m, world)."""
     tracks: list[int]
     """Source tracks assigned to the segment (T)."""
@@ -49,6 +49,8 @@ class SegmentNode(Message):
 
     @model_validator(mode="after")
     def _gallery(self) -> SegmentNode:
+        """``gallery`` has one row per ``gallery_tracks`` entry, a subset of ``tracks``; ``gallery_weights`` is empty or
+        one value in [0, 1] per row; ``bbox_min`` <= ``bbox_max``."""
         if self.gallery.shape[0] != len(self.gallery_tracks):
             raise ValueError(f"gallery has {self.gallery.shape[0]} rows for {len(self.gallery_tracks)} tracks")
         if not set(self.gallery_tracks) <= set(self.tracks):
@@ -67,9 +69,9 @@ class PlaceNode(Message):
 
     id: int = Field(ge=0)
     """Place id."""
-    position: Vec3
+    position: Annotated[Vec3, METRES]
     """Position (m, world)."""
-    radius: float = Field(ge=0)
+    radius: Annotated[float, METRES] = Field(ge=0)
     """Distance to the nearest obstacle (m)."""
     room: int | None = None
     """Room containing the place."""
@@ -80,7 +82,7 @@ class RoomNode(Message):
 
     id: int = Field(ge=0)
     """Room id."""
-    centroid: Vec3
+    centroid: Annotated[Vec3, METRES]
     """Centroid of its places (m, world)."""
     name: str = ""
     """Optional label."""
@@ -100,8 +102,8 @@ class Edge(Message):
 class MeshChunk(Message):
     """Mesh of the active window with each vertex's winning segment."""
 
-    vertices: Vertices
-    """(V, 3) float32 positions."""
+    vertices: Annotated[Vertices, METRES]
+    """(V, 3) float32 positions (world)."""
     colors: Colors
     """(V, 3) uint8 colours."""
     faces: Faces
@@ -111,6 +113,7 @@ class MeshChunk(Message):
 
     @model_validator(mode="after")
     def _sizes(self) -> MeshChunk:
+        """``colors`` and ``segment_ids`` have one row per vertex; ``faces`` index existing vertices."""
         v = self.vertices.shape[0]
         if self.colors.shape[0] != v or self.segment_ids.shape[0] != v:
             raise ValueError("colors and segment_ids need one row per vertex")

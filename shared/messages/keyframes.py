@@ -9,8 +9,8 @@ from pydantic import Field, model_validator
 
 from shared.arrays import ArraySpec
 from shared.geometry import Intrinsics
-from shared.messages.base import Message, register
-from shared.messages.frames import RGB, Depth, Labels
+from shared.messages.base import PIXELS, Message, Units, register
+from shared.messages.frames import RGB, Depth
 
 Masks = Annotated[np.ndarray, ArraySpec(("bool",), (None, None, None), kind="mask")]
 Boxes = Annotated[np.ndarray, ArraySpec(("float32",), (None, 4), finite=True)]
@@ -27,22 +27,19 @@ class KeyframeRequest(Message):
     """The keyframe's frame index; replies carry it back."""
     rgb: RGB
     """(H, W, 3) uint8 image (JPEG over the network)."""
-    depth: Depth | None = None
+    depth: Annotated[Depth | None, Units("1 / depth_scale m")] = None
     """(H, W) uint16 depth, for the classical RGB-D segmenter."""
-    depth_scale: float | None = Field(None, gt=0)
+    depth_scale: Annotated[float | None, Units("1 / m")] = Field(None, gt=0)
     """Depth units per metre, with ``depth``."""
     intrinsics: Intrinsics | None = None
     """Intrinsics, with ``depth``."""
-    instances: Labels | None = None
-    """(H, W) int32 ground-truth ids, for the simulated backends on synthetic scenes."""
 
     @model_validator(mode="after")
     def _sizes(self) -> KeyframeRequest:
+        """``depth``, when given, is the size of ``rgb`` and comes with ``depth_scale``."""
         hw = self.rgb.shape[:2]
-        for name in ("depth", "instances"):
-            a = getattr(self, name)
-            if a is not None and a.shape != hw:
-                raise ValueError(f"{name} shape {a.shape} differs from rgb {hw}")
+        if self.depth is not None and self.depth.shape != hw:
+            raise ValueError(f"depth shape {self.depth.shape} differs from rgb {hw}")
         if self.depth is not None and self.depth_scale is None:
             raise ValueError("depth needs depth_scale")
         return self
@@ -56,7 +53,7 @@ class KeyframeMasks(Message):
     """The keyframe's frame index."""
     masks: Masks
     """(N, H, W) bool masks."""
-    boxes: Boxes
+    boxes: Annotated[Boxes, PIXELS]
     """(N, 4) float32 boxes x0, y0, x1, y1 in pixels."""
     scores: Scores
     """(N,) float32 segmenter confidences."""
@@ -65,6 +62,7 @@ class KeyframeMasks(Message):
 
     @model_validator(mode="after")
     def _counts(self) -> KeyframeMasks:
+        """``masks``, ``boxes`` and ``scores`` have the same number N of rows."""
         n = self.masks.shape[0]
         if self.boxes.shape[0] != n or self.scores.shape[0] != n:
             raise ValueError(f"{n} masks but {self.boxes.shape[0]} boxes and {self.scores.shape[0]} scores")
@@ -99,6 +97,7 @@ class TrackFeature(Message):
 
     @model_validator(mode="after")
     def _clip_count(self) -> TrackFeature:
+        """``clip`` and ``clip_count`` are both set (count >= 1) or both empty."""
         if (self.clip is None) != (self.clip_count == 0):
             raise ValueError("clip and clip_count must be both set or both empty")
         return self

@@ -8,21 +8,19 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from shared.arrays import ArraySpec
-from shared.messages.base import Message, register
-from shared.messages.frames import RGB, Labels
+from shared.messages.base import METRES, Message, register
+from shared.messages.frames import RGB
 from shared.messages.graph import Vec3
 from shared.messages.keyframes import Vector
 
 
-def _one_of_text_or_image(text: str | None, image: np.ndarray | None, instances: np.ndarray | None = None) -> None:
+def _one_of_text_or_image(text: str | None, image: np.ndarray | None) -> None:
     if (text is None) == (image is None):
         raise ValueError("give exactly one of text or image")
     if text is not None and not text.strip():
         raise ValueError("text is empty")
     if image is not None and (image.shape[0] == 0 or image.shape[1] == 0):
         raise ValueError(f"image has no pixels (shape {image.shape})")
-    if instances is not None and (image is None or instances.shape != image.shape[:2]):
-        raise ValueError(f"instances {instances.shape} must come with an image of the same size")
 
 @register
 class EmbedRequest(Message):
@@ -32,13 +30,11 @@ class EmbedRequest(Message):
     """A text prompt."""
     image: RGB | None = None
     """(H, W, 3) uint8 image."""
-    instances: Labels | None = None
-    """(H, W) ground-truth instance ids of the image, only for synthetic scenes: the
-    simulated encoder embeds an image from them."""
 
     @model_validator(mode="after")
     def _one(self) -> EmbedRequest:
-        _one_of_text_or_image(self.text, self.image, self.instances)
+        """Exactly one of ``text`` (not blank) and ``image`` (with pixels)."""
+        _one_of_text_or_image(self.text, self.image)
         return self
 
 @register
@@ -60,22 +56,21 @@ class QueryRequest(Message):
     """Text query, e.g. "red armchair"."""
     image: RGB | None = None
     """Image query."""
-    instances: Labels | None = None
-    """Ground-truth instance ids of the image query (synthetic scenes, simulated encoder)."""
     top_k: int | None = Field(None, ge=1)
     """Results wanted; the service caps it."""
     room: int | None = None
     """Only segments in this room."""
-    center: Vec3 | None = None
+    center: Annotated[Vec3 | None, METRES] = None
     """With radius: only segments whose centroid lies within radius of this point."""
-    radius: float | None = Field(None, gt=0)
+    radius: Annotated[float | None, METRES] = Field(None, gt=0)
     """Radius around center (m)."""
     gallery: Literal["max", "mean"] | None = None
     """Override the service's gallery scoring."""
 
     @model_validator(mode="after")
     def _valid(self) -> QueryRequest:
-        _one_of_text_or_image(self.text, self.image, self.instances)
+        """Exactly one of ``text`` (not blank) and ``image`` (with pixels); ``center`` and ``radius`` go together."""
+        _one_of_text_or_image(self.text, self.image)
         if (self.center is None) != (self.radius is None):
             raise ValueError("center and radius go together")
         return self
@@ -87,11 +82,11 @@ class QueryHit(Message):
     """Segment id."""
     score: float
     """Eq. 10 score."""
-    centroid: Vec3
+    centroid: Annotated[Vec3, METRES]
     """Centroid (m, world)."""
-    bbox_min: Vec3
+    bbox_min: Annotated[Vec3, METRES]
     """Box corner."""
-    bbox_max: Vec3
+    bbox_max: Annotated[Vec3, METRES]
     """Box corner."""
     room: int | None = None
     """Room id."""

@@ -147,7 +147,6 @@ def frames(draw: st.DrawFn) -> Frame:
         depth_scale=draw(POSITIVE),
         intrinsics=draw(intrinsics(w, h)),
         T_world_cam=draw(rigid_poses()),
-        instances=draw(st.none() | arrays("int32", (h, w))),
     )
 
 
@@ -189,7 +188,6 @@ def keyframe_requests(draw: st.DrawFn) -> KeyframeRequest:
         depth=draw(arrays("uint16", (h, w))) if with_depth else None,
         depth_scale=draw(POSITIVE) if with_depth else draw(st.none() | POSITIVE),
         intrinsics=draw(st.none() | intrinsics(w, h)),
-        instances=draw(st.none() | arrays("int32", (h, w))),
     )
 
 
@@ -327,8 +325,7 @@ def text_or_image(draw: st.DrawFn) -> dict:
     if draw(st.booleans()):
         return {"text": draw(NONBLANK)}
     h, w = draw(SIDE), draw(SIDE)
-    instances = draw(st.none() | arrays("int32", (h, w), elements=st.integers(-1, 50)))
-    return {"image": draw(rgb_images(h, w)), "instances": instances}
+    return {"image": draw(rgb_images(h, w))}
 
 
 @st.composite
@@ -540,11 +537,11 @@ def test_decode_default_config_matches_encode_default_config() -> None:
         depth_scale=1000.0,
         intrinsics=Intrinsics(fx=1, fy=1, cx=0, cy=0, width=w, height=h),
         T_world_cam=np.eye(4),
-        instances=np.full((h, w), -1, dtype=np.int32),
     )
-    payload = encode(frame, robot_id="robot0", seq=7, stamp=1.5)
+    tracked = TrackedFrame(frame=frame, track_ids=np.full((h, w), -1, dtype=np.int32), tracks=[])
+    payload = encode(tracked, robot_id="robot0", seq=7, stamp=1.5)
     body = msgpack.unpackb(payload)["body"]
-    assert body["rgb"]["__nd__"] == "raw"
-    assert body["instances"]["__nd__"] == "zlib"
-    env = decode(payload, Frame)
-    assert_same(env.body, frame, CodecConfig(), "Frame")
+    assert body["frame"]["rgb"]["__nd__"] == "raw"
+    assert body["track_ids"]["__nd__"] == "zlib"
+    env = decode(payload, TrackedFrame)
+    assert_same(env.body, tracked, CodecConfig(), "TrackedFrame")

@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 
 from shared.config.keyframe_vl import VLEncoderConfig
+from shared.datasets.ground_truth import InstanceSource
 from shared.perception import VLEncoder
 
 log = logging.getLogger(__name__)
@@ -23,13 +24,17 @@ BACKENDS = ("openclip", "clip_onnx", "simulated")
 __all__ = ["BACKENDS", "make_vl_encoder"]
 
 
-def make_vl_encoder(cfg: VLEncoderConfig, device: str = "cpu", fp16: bool = False) -> VLEncoder:
+def make_vl_encoder(
+    cfg: VLEncoderConfig, device: str = "cpu", fp16: bool = False, ground_truth: InstanceSource | None = None
+) -> VLEncoder:
     """The encoder ``cfg.backend`` names.
 
     ``device`` is ``cpu``, ``cuda`` (or ``cuda:N``) or ``auto``; ``fp16`` runs the ``openclip``
     backend under fp16 autocast on CUDA and is ignored elsewhere. Missing weights raise
     FileNotFoundError naming the path and where to get them; ``simulated`` without usable
-    ground truth raises FileNotFoundError or ValueError naming the file.
+    ground truth raises FileNotFoundError or ValueError naming the file or the config field.
+    ``ground_truth`` gives the ``simulated`` backend its instance ids instead of the sequence
+    folder of ``cfg.ground_truth`` (tests); the other backends need none.
     """
     if cfg.backend == "openclip":
         from services.keyframe_vl.encoders.common import resolve_device
@@ -51,5 +56,5 @@ def make_vl_encoder(cfg: VLEncoderConfig, device: str = "cpu", fp16: bool = Fals
 
         # The text encoder stays on the CPU: its embeddings are cached on disk by text, and
         # a crop costs no network pass at all.
-        return SimulatedVLEncoder(cfg.ground_truth, noise_std=cfg.noise_std)
+        return SimulatedVLEncoder(cfg.ground_truth, noise_std=cfg.noise_std, source=ground_truth)
     raise ValueError(f"unknown VL encoder backend {cfg.backend!r}; choose one of: {', '.join(BACKENDS)}")

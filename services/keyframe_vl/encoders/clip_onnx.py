@@ -169,9 +169,8 @@ class ClipOnnxEncoder:
             return np.zeros((0, self.dim), np.float32)
         return unit_rows(np.concatenate(feats))
 
-    def encode_image(
-        self, rgb: Annotated[np.ndarray, "(H, W, 3) uint8"], instances: np.ndarray | None = None
-    ) -> Annotated[np.ndarray, "(D,) float32"]:
+    def encode_image(self, rgb: Annotated[np.ndarray, "(H, W, 3) uint8"]) -> Annotated[np.ndarray, "(D,) float32"]:
+        """A whole image (an image query)."""
         return self._forward_images([check_rgb(rgb)])[0]
 
 

@@ -128,8 +128,6 @@ class OpenClipEncoder:
             return np.zeros((0, self.dim), np.float32)
         return unit_rows(np.concatenate(feats))
 
-    def encode_image(
-        self, rgb: Annotated[np.ndarray, "(H, W, 3) uint8"], instances: np.ndarray | None = None
-    ) -> Annotated[np.ndarray, "(D,) float32"]:
-        """A whole image (an image query); ``instances`` is not needed by a real encoder."""
+    def encode_image(self, rgb: Annotated[np.ndarray, "(H, W, 3) uint8"]) -> Annotated[np.ndarray, "(D,) float32"]:
+        """A whole image (an image query)."""
         return self._forward_images([check_rgb(rgb)])[0]

@@ -3,8 +3,8 @@
 A crop's feature is the mix of its ground-truth objects' text embeddings, weighted by pixel
 share, plus Gaussian noise, L2-normalised:
 
-- **Weights are mask-weighted**: the shares are those of the ground-truth ids
-  (``KeyframeImage.instances``) under the mask's own pixels, not under the whole padded box.
+- **Weights are mask-weighted**: the shares are those of the keyframe's ground-truth ids under
+  the mask's own pixels, not under the whole padded box.
   A mask that straddles two objects so mixes them in proportion, as a real crop of a bad mask
   would; the padding's context is left out, because with exact masks it would only blur
   every object towards its neighbours. ``crop_padding`` therefore plays no part here.
@@ -20,6 +20,13 @@ share, plus Gaussian noise, L2-normalised:
   and the mean 95.3%.
 - The noise is ``noise_std`` per component (so its norm is about ``noise_std * sqrt(384)``),
   seeded by ``(frame_index, mask index)``: the same keyframe gives the same features.
+
+The ground-truth ids come from an :class:`~shared.datasets.ground_truth.InstanceSource` given at
+construction (by default the sequence folder of ``keyframe_vl.vl.ground_truth``): a keyframe's
+by its frame index, an image query's by its pixels (a sequence frame or a crop of one, pixel
+for pixel). No message carries them. A folder source builds its image index on a background
+thread as the encoder is made (about 3 ms a frame, once), so the first image query does not
+wait for it.
 
 Text goes through the same offline MiniLM encoder (:class:`shared.text.minilm.MiniLMTextEncoder`),
 so queries and crops share one 384-d space.
@@ -37,6 +44,7 @@ import numpy as np
 
 from services.keyframe_vl.crops import mask_box
 from services.keyframe_vl.encoders.common import check_rgb, unit_rows
+from shared.datasets.ground_truth import GroundTruthError, InstanceSource, SequenceGroundTruth
 from shared.perception import KeyframeImage, Masks
 
 log = logging.getLogger(__name__)
@@ -57,8 +65,8 @@ def find_categories(ground_truth: str | Path | None) -> Path:
     """``gt_categories.json`` in ``ground_truth`` or in its ``gt/`` subfolder."""
     if ground_truth is None or str(ground_truth).strip() == "":
         raise ValueError(
-            "the simulated VL encoder needs keyframe_vl.vl.ground_truth: a synthetic sequence's gt/ folder "
-            "(`trackgraph synth` writes SEQ_DIR/gt; `trackgraph map` sets it when unset)"
+            "the simulated VL encoder needs keyframe_vl.vl.ground_truth: a synthetic sequence folder "
+            "(`trackgraph synth` writes one; `trackgraph map`, `launch` and `serve --sequence` set it when unset)"
         )
     root = Path(ground_truth).expanduser()
     for cand in (root / CATEGORIES_FILE, root / "gt" / CATEGORIES_FILE):
@@ -86,7 +94,7 @@ def load_object_names(path: Path) -> dict[int, str]:
 
 
 class SimulatedVLEncoder:
-    """Ground-truth label mixtures in MiniLM space; needs ``KeyframeImage.instances``."""
+    """Ground-truth label mixtures in MiniLM space, from a ground-truth source."""
 
     name = NAME
 
@@ -95,11 +103,19 @@ class SimulatedVLEncoder:
         ground_truth: str | Path | None,
         noise_std: float = 0.05,
         text_encoder: TextEmbedder | None = None,
+        source: InstanceSource | None = None,
     ) -> None:
+        """``ground_truth`` is the sequence folder (or its ``gt/``) whose categories give the
+        labels; ``source`` the instance ids, by default read from the same folder."""
         if noise_std < 0:
             raise ValueError(f"noise_std must be >= 0 (got {noise_std})")
         self.categories = find_categories(ground_truth)
         names = load_object_names(self.categories)
+        if source is None:
+            folder = SequenceGroundTruth(ground_truth, field="keyframe_vl.vl.ground_truth", user="simulated VL encoder")
+            folder.prepare_images(background=True)
+            source = folder
+        self.source = source
         if text_encoder is None:
             from shared.text.minilm import MiniLMTextEncoder
 
@@ -131,22 +147,19 @@ class SimulatedVLEncoder:
             return unit_rows(noise[None])[0]
         return unit_rows((mix + np.float32(self.noise_std) * noise)[None])[0]
 
-    @staticmethod
-    def _instances(instances: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray:
-        if instances is None:
-            raise ValueError(
-                "the simulated VL encoder needs ground-truth instance ids (KeyframeImage.instances); "
-                "it works only on synthetic sequences"
-            )
-        if instances.shape != shape:
-            raise ValueError(f"instances of shape {instances.shape} do not match the image {shape}")
-        return instances
-
     def encode_crops(self, image: KeyframeImage, masks: Masks) -> Annotated[np.ndarray, "(N, 384) float32"]:
         """One feature per mask: its pixels' ground-truth mix plus noise seeded by
         ``(frame_index, mask index)``."""
         rgb = check_rgb(image.rgb)
-        inst = self._instances(image.instances, rgb.shape[:2])
+        try:
+            inst = np.asarray(self.source.frame_instances(image.frame_index))
+        except GroundTruthError as exc:
+            raise GroundTruthError(f"keyframe {image.frame_index}: the simulated VL encoder has no ground truth: {exc}") from None
+        if inst.shape != rgb.shape[:2]:
+            raise GroundTruthError(
+                f"keyframe {image.frame_index}: the ground-truth instances are {inst.shape[1]}x{inst.shape[0]} but the image is "
+                f"{rgb.shape[1]}x{rgb.shape[0]}: is keyframe_vl.vl.ground_truth the sequence being replayed?"
+            )
         if masks.masks.shape[1:] != rgb.shape[:2]:
             raise ValueError(f"masks of shape {masks.masks.shape} do not match the image {rgb.shape[:2]}")
         out = np.zeros((len(masks), self.dim), np.float32)
@@ -166,11 +179,13 @@ class SimulatedVLEncoder:
             return np.zeros((0, self.dim), np.float32)
         return unit_rows(self.text.encode(texts))
 
-    def encode_image(
-        self, rgb: Annotated[np.ndarray, "(H, W, 3) uint8"], instances: np.ndarray | None = None
-    ) -> Annotated[np.ndarray, "(384,) float32"]:
-        """The whole image's mix; ``instances`` is required. The noise is seeded by the ids'
-        bytes, so the same image query gives the same feature."""
+    def encode_image(self, rgb: Annotated[np.ndarray, "(H, W, 3) uint8"]) -> Annotated[np.ndarray, "(384,) float32"]:
+        """The mix of the ground-truth ids under the image, which must be a frame of the
+        sequence or a crop of one. The noise is seeded by the ids' bytes, so the same image
+        query gives the same feature."""
         rgb = check_rgb(rgb)
-        inst = np.ascontiguousarray(self._instances(instances, rgb.shape[:2]))
+        try:
+            inst = np.ascontiguousarray(self.source.image_instances(rgb))
+        except GroundTruthError as exc:
+            raise GroundTruthError(f"the simulated VL encoder has no ground truth for this image: {exc}") from None
         return self._finish(self._mix(inst.ravel()), (1, zlib.crc32(inst.tobytes())))

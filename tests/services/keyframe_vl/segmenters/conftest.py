@@ -3,12 +3,10 @@
 from __future__ import annotations
 
 import pytest
-from seg_room import render_room
-
-from shared.perception import KeyframeImage
+from seg_room import RoomImage, render_room
 
 
 @pytest.fixture(scope="session")
-def room() -> KeyframeImage:
+def room() -> RoomImage:
     """Shared by every test: treat it as read-only."""
     return render_room()

@@ -4,8 +4,11 @@ name rather than conftest.py: test folders have no __init__.py, and several hold
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
+from shared.datasets.ground_truth import StaticGroundTruth
 from shared.geometry import Intrinsics
 from shared.perception import KeyframeImage
 
@@ -18,6 +21,19 @@ BOXES = [
     ((0.45, 0.45, 1.9), (0.7, 0.7, 2.1), (230, 230, 230)),  # standing on box 1
 ]
 STRUCTURE = [(150, 140, 130), (200, 195, 185), (170, 175, 190)]  # floor, back wall, left wall
+
+
+@dataclass(frozen=True)
+class RoomImage(KeyframeImage):
+    """The rendered keyframe and, for scoring and for the simulated segmenter's
+    :func:`truth`, its ground-truth ids (which no KeyframeImage carries)."""
+
+    instances: np.ndarray | None = None
+
+
+def truth(room: RoomImage, frames: int = 32) -> StaticGroundTruth:
+    """The room's ids as the ground truth of frames 0 to ``frames - 1``."""
+    return StaticGroundTruth({i: room.instances for i in range(frames)})
 
 
 def _box_hits(d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -33,7 +49,7 @@ def _box_hits(d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray
     return np.where(hit, enter, np.inf), np.nanargmax(tmin, axis=-1)
 
 
-def render_room(width: int = 320, height: int = 240, seed: int = 0, frame_index: int = 0) -> KeyframeImage:
+def render_room(width: int = 320, height: int = 240, seed: int = 0, frame_index: int = 0) -> RoomImage:
     f = width / 2 / np.tan(np.radians(35))
     K = Intrinsics(fx=f, fy=f, cx=(width - 1) / 2, cy=(height - 1) / 2, width=width, height=height)
     u, v = np.meshgrid(np.arange(width), np.arange(height))
@@ -65,4 +81,4 @@ def render_room(width: int = 320, height: int = 240, seed: int = 0, frame_index:
     rng = np.random.default_rng(seed)
     rgb = base * shade[..., None] + rng.normal(0, 3.0, base.shape)
     rgb = np.clip(rgb, 0, 255).astype(np.uint8)
-    return KeyframeImage(frame_index=frame_index, rgb=rgb, depth_m=depth, intrinsics=K, instances=inst)
+    return RoomImage(frame_index=frame_index, rgb=rgb, depth_m=depth, intrinsics=K, instances=inst)

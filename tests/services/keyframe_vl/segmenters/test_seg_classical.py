@@ -6,7 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from seg_room import render_room
+from seg_room import RoomImage, render_room
 
 from services.keyframe_vl.segmenters import make_segmenter
 from services.keyframe_vl.segmenters.classical import rgb_to_lab
@@ -88,7 +88,6 @@ def _run_synth():
 @pytest.fixture(scope="module")
 def small_preset_frames(tmp_path_factory):
     from shared.datasets import open_sequence
-    from shared.perception import KeyframeImage
 
     out = tmp_path_factory.mktemp("synth") / "small"
     _run_synth()("small", 0, out, overrides={"camera": {"frames": 12}})
@@ -96,18 +95,18 @@ def small_preset_frames(tmp_path_factory):
     frames = []
     for i in range(len(seq)):
         f = seq.frame(i)
-        frames.append(
-            KeyframeImage(frame_index=i, rgb=f.rgb, depth_m=f.depth_m(), intrinsics=f.intrinsics, instances=f.instances)
-        )
-    return frames
+        frames.append(RoomImage(frame_index=i, rgb=f.rgb, depth_m=f.depth_m(), intrinsics=f.intrinsics, instances=seq.instances(i)))
+    return out, frames
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize(("backend", "lo", "hi"), [("classical", 0.6, 1.0), ("simulated", 0.6, 0.95)])
 def test_small_preset_mean_best_iou(small_preset_frames, backend, lo, hi):
-    """The project's acceptance bar on the synthetic ``small`` preset, on a short walk."""
-    seg = make_segmenter(SegmenterConfig(backend=backend))
+    """The project's acceptance bar on the synthetic ``small`` preset, on a short walk (the
+    simulated segmenter reads the walk's ground truth from its folder, by frame index)."""
+    folder, frames = small_preset_frames
+    seg = make_segmenter(SegmenterConfig(backend=backend, ground_truth=str(folder) if backend == "simulated" else None))
     scores = []
-    for frame in small_preset_frames:
+    for frame in frames:
         scores += list(mean_best_iou(seg.segment(frame).masks, frame.instances)[1].values())
     assert lo <= float(np.mean(scores)) <= hi, np.mean(scores)

@@ -6,8 +6,10 @@ import subprocess
 import sys
 
 import pytest
+from seg_room import truth
 
 from services.keyframe_vl.segmenters import BACKENDS, make_segmenter
+from services.keyframe_vl.segmenters.simulated import SimulatedSegmenter
 from shared.config.keyframe_vl import SegmenterConfig
 
 LIGHT = [
@@ -34,7 +36,10 @@ def test_importing_segmenters_loads_no_heavy_library():
 
 @pytest.mark.parametrize("backend", ["classical", "simulated"])
 def test_weightless_backends(backend, room):
-    seg = make_segmenter(SegmenterConfig(backend=backend))
+    if backend == "simulated":
+        seg = SimulatedSegmenter(SegmenterConfig(backend=backend), truth(room))
+    else:
+        seg = make_segmenter(SegmenterConfig(backend=backend))
     assert seg.name == backend
     out = seg.segment(room)
     assert out.masks.shape[1:] == room.rgb.shape[:2] and len(out) > 0

@@ -6,15 +6,26 @@ import dataclasses
 
 import numpy as np
 import pytest
+from seg_room import render_room, truth
 
 from services.keyframe_vl.segmenters import make_segmenter
+from services.keyframe_vl.segmenters.simulated import SimulatedSegmenter
 from shared.config.keyframe_vl import SegmenterConfig, SimulatedSegmenterNoise
+from shared.datasets.ground_truth import GroundTruthError
 from shared.eval.segmenter import mean_best_iou
 from shared.perception import KeyframeImage
 
 ZERO = SimulatedSegmenterNoise(
     boundary_jitter_px=0, split_prob=0, merge_prob=0, miss_below_px=0, spurious_per_frame=0
 )
+
+
+TRUTH = truth(render_room())
+"""The room fixture's ids as frames 0-31: the segmenter reads them by frame index."""
+
+
+def simulated(cfg: SegmenterConfig) -> SimulatedSegmenter:
+    return SimulatedSegmenter(cfg, TRUTH)
 
 
 def _gt_masks(instances, cfg):
@@ -26,7 +37,7 @@ def _gt_masks(instances, cfg):
 @pytest.mark.parametrize("min_area_px", [0, 1500])
 def test_zero_noise_reproduces_ground_truth(room, min_area_px):
     cfg = SegmenterConfig(backend="simulated", noise=ZERO, min_area_px=min_area_px, max_area_frac=1.0)
-    out = make_segmenter(cfg).segment(room)
+    out = simulated(cfg).segment(room)
     got = {tuple(np.flatnonzero(m.ravel())) for m in out.masks}
     assert got == _gt_masks(room.instances, cfg)
     assert len(got) == len(out)
@@ -35,7 +46,7 @@ def test_zero_noise_reproduces_ground_truth(room, min_area_px):
 
 
 def test_default_noise_is_within_band(room):
-    seg = make_segmenter(SegmenterConfig(backend="simulated"))
+    seg = simulated(SegmenterConfig(backend="simulated"))
     values = []
     for i in range(12):
         out = seg.segment(dataclasses.replace(room, frame_index=i))
@@ -47,12 +58,12 @@ def test_default_noise_is_within_band(room):
 
 def test_deterministic_per_seed_and_frame(room):
     cfg = SegmenterConfig(backend="simulated", noise=SimulatedSegmenterNoise(spurious_per_frame=2.0, split_prob=0.3))
-    a = make_segmenter(cfg).segment(room)
-    b = make_segmenter(cfg).segment(room)
+    a = simulated(cfg).segment(room)
+    b = simulated(cfg).segment(room)
     np.testing.assert_array_equal(a.masks, b.masks)
     np.testing.assert_array_equal(a.scores, b.scores)
-    other_frame = make_segmenter(cfg).segment(dataclasses.replace(room, frame_index=7))
-    other_seed = make_segmenter(cfg.model_copy(update={"seed": 1})).segment(room)
+    other_frame = simulated(cfg).segment(dataclasses.replace(room, frame_index=7))
+    other_seed = simulated(cfg.model_copy(update={"seed": 1})).segment(room)
     assert not np.array_equal(a.scores, other_frame.scores)
     assert not np.array_equal(a.scores, other_seed.scores)
 
@@ -62,7 +73,7 @@ def test_each_noise_kind_acts(room):
 
     def run(**noise):
         cfg = SegmenterConfig(backend="simulated", noise=base.model_copy(update=noise), min_area_px=0, max_area_frac=1.0)
-        return make_segmenter(cfg).segment(room)
+        return simulated(cfg).segment(room)
 
     n_gt = len(np.unique(room.instances))
     assert len(run(split_prob=1.0)) > n_gt
@@ -79,7 +90,19 @@ def test_each_noise_kind_acts(room):
     assert 0.7 < mean_best_iou(jittered.masks, room.instances)[0] < 1.0
 
 
-def test_needs_ground_truth(room):
-    seg = make_segmenter(SegmenterConfig(backend="simulated"))
-    with pytest.raises(ValueError, match="synthetic"):
-        seg.segment(KeyframeImage(frame_index=0, rgb=room.rgb))
+def test_ground_truth_comes_from_its_source_not_the_image(room, tmp_path):
+    """No ground truth rides on the image: without a source the segmenter refuses to be made,
+    naming the config key, and a keyframe its source does not know is refused by index."""
+    with pytest.raises(GroundTruthError, match="keyframe_vl.segmenter.ground_truth is not set"):
+        make_segmenter(SegmenterConfig(backend="simulated"))
+    with pytest.raises(GroundTruthError, match="keyframe_vl.segmenter.ground_truth: .* is not a folder"):
+        make_segmenter(SegmenterConfig(backend="simulated", ground_truth=str(tmp_path / "nowhere")))
+    with pytest.raises(GroundTruthError, match="no instances/"):
+        make_segmenter(SegmenterConfig(backend="simulated", ground_truth=str(tmp_path)))
+    seg = simulated(SegmenterConfig(backend="simulated"))
+    with pytest.raises(GroundTruthError, match="keyframe 99: .*frame_index 99"):
+        seg.segment(KeyframeImage(frame_index=99, rgb=room.rgb))
+    with pytest.raises(GroundTruthError, match="keyframe 0: .*64x48"):
+        seg.segment(KeyframeImage(frame_index=0, rgb=room.rgb[:48, :64]))
+    # A plain KeyframeImage of a known frame is enough: the ids come from the source.
+    assert len(seg.segment(KeyframeImage(frame_index=3, rgb=room.rgb))) > 0
