@@ -114,7 +114,13 @@ def plan_launch(
         if spec.zenoh_config is not None and spec.name != "router":
             own = system.model_copy(update={"transport": system.transport.model_copy(update={"zenoh_config_file": str(rel(spec.zenoh_config))})})
             cfg_file = save_resolved(own, log_dir / f"config-{spec.name}.yaml")
-        if spec.name == "router":
+        if spec.command is not None:
+            fill = {"{python}": sys.executable, "{here}": str(here.resolve()), "{connect}": launch.connect[0],
+                    "{robot}": system.robot_id, "{config}": str(cfg_file)}  # fmt: skip
+            cmd = list(spec.command)
+            for token, value in fill.items():
+                cmd = [arg.replace(token, value) for arg in cmd]
+        elif spec.name == "router":
             cmd = [*py, "router", *sum((["--listen", ep] for ep in launch.listen), [])]
             if spec.zenoh_config is not None:
                 cmd += ["--zenoh-config", str(rel(spec.zenoh_config))]

@@ -34,6 +34,13 @@ class ServiceSpec(StrictModel):
     the others are ``trackgraph serve NAME``."""
     args: list[str] = Field(default_factory=list)
     """Extra command-line arguments (e.g. ``[--resume]`` for fusion)."""
+    command: list[str] | None = Field(None, min_length=1)
+    """Run this program (an argv list) instead of the built-in service, e.g. a stand-in
+    written against docs/wire.md: it takes the service's place (``after``, restarts, and its
+    liveliness token ``trackgraph/<robot_id>/alive/<name>``, which it must declare). In each
+    item ``{python}`` becomes this Python, ``{here}`` the launch file's folder, ``{connect}``
+    the first router endpoint, ``{robot}`` the robot id and ``{config}`` the resolved system
+    config. ``args`` are appended."""
     after: list[ServiceName] = Field(default_factory=list)
     """Start once these services are alive (their liveliness tokens are up)."""
     restart: RestartPolicy | None = None
