@@ -125,7 +125,7 @@ def test_embed_answers_within_timeout(system):
     deadline = time.monotonic() + 10
     while True:
         try:
-            rep = request(client, key, EmbedRequest(text="armchair"), EmbedReply, robot_id="c", timeout=5.0)
+            rep = request(client, key, EmbedRequest(text="armchair"), EmbedReply, robot_id="robot0", timeout=5.0)
             break
         except TransportError:
             if time.monotonic() > deadline:
@@ -133,6 +133,6 @@ def test_embed_answers_within_timeout(system):
             time.sleep(0.2)
     assert rep.body.error is None and rep.body.embedding.shape == (384,)
     t0 = time.monotonic()
-    again = request(client, key, EmbedRequest(text="armchair"), EmbedReply, robot_id="c", timeout=2.0)
+    again = request(client, key, EmbedRequest(text="armchair"), EmbedReply, robot_id="robot0", timeout=2.0)
     assert time.monotonic() - t0 < 2.0
     np.testing.assert_array_equal(again.body.embedding, rep.body.embedding)
