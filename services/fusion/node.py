@@ -2,7 +2,8 @@
 in the folder ``out`` (snapshots, resume, the final export).
 
 The session holds fusion's coordination (duplicates, acks, end of sequence with its grace,
-snapshots); this adapter opens the bus, ticks the session and announces the service.
+snapshots); this adapter opens the bus, runs the worker that hands the session its inputs in
+arrival order, ticks the session and announces the service.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from services.fusion.session import END_GRACE_S, FusionSession
 from shared.config.base import save_resolved
 from shared.config.root import TrackGraphConfig
 from shared.graph.store import MapStore
-from shared.runtime.session import Ticker
+from shared.runtime.session import Inbox, Ticker
 from shared.topics import Topics
 from shared.transport import ZenohBus
 
@@ -37,9 +38,11 @@ class FusionNode:
         self.store = MapStore(self.out / "graph", robot_id=cfg.robot_id)
         core = FusionCore(cfg.fusion, device=cfg.tracker.device)
         self.bus = ZenohBus(session, cfg.robot_id, cfg.transport.codec) if session is not None else ZenohBus.open(cfg.transport, cfg.robot_id)
+        self.inbox = Inbox(256, name="fusion:worker")
         try:
-            self.session = FusionSession(self.bus, cfg, core, store=self.store, out=self.out, resume=resume)
+            self.session = FusionSession(self.bus, cfg, core, store=self.store, out=self.out, resume=resume, inbox=self.inbox)
         except BaseException:
+            self.inbox.stop()
             self.bus.close()
             raise
         self.out.mkdir(parents=True, exist_ok=True)

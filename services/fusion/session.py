@@ -25,7 +25,7 @@ from shared.messages.frames import EndOfSequence, FrameAck, TrackedFrame
 from shared.messages.graph import GraphDelta, GraphSnapshot, SnapshotRequest
 from shared.messages.keyframes import TrackFeatures
 from shared.runtime.bus import Bus
-from shared.runtime.session import LATER, Session
+from shared.runtime.session import LATER, Inbox, Session
 
 log = logging.getLogger(__name__)
 
@@ -40,9 +40,9 @@ class FusionSession(Session):
 
     def __init__(
         self, bus: Bus, cfg: TrackGraphConfig, core, *, store: MapStore | None = None, out: Path | None = None,
-        resume: bool = False, clock: Callable[[], float] = time.monotonic,
+        resume: bool = False, clock: Callable[[], float] = time.monotonic, inbox: Inbox | None = None,
     ) -> None:  # fmt: skip
-        super().__init__(bus, clock=clock)
+        super().__init__(bus, clock=clock, inbox=inbox)
         if store is not None and out is None:
             raise ValueError("a fusion session with a store needs its map folder (out) for the final export")
         self.cfg = cfg
@@ -72,11 +72,11 @@ class FusionSession(Session):
             # a resumed map goes on numbering its deltas where the snapshot left off
             self.deltas.seq = core.graph.graph_seq
         self.snapshots = self.serve("graph_snapshot", SnapshotRequest, GraphSnapshot, self._on_snapshot)
-        # Room for what a lossless source keeps in flight and far more: a slow map must lag
-        # before it drops (live, the bench counts a drop here against the input rate).
-        self.subscribe("tracks_frame", TrackedFrame, self._on_frame, capacity=256)
-        self.subscribe("tracks_features", TrackFeatures, self._on_features, capacity=256)
-        self.subscribe("tracks_end", EndOfSequence, self._on_end, capacity=4)
+        # All three in one order (the node's inbox): the core sees frames and feature updates
+        # as they arrived, as the in-process pipeline feeds them.
+        self.subscribe("tracks_frame", TrackedFrame, self._on_frame, capacity=16, queued=True)
+        self.subscribe("tracks_features", TrackFeatures, self._on_features, capacity=64, queued=True)
+        self.subscribe("tracks_end", EndOfSequence, self._on_end, capacity=4, queued=True)
         self._refresh()
 
     # ---------------------------------------------------------------- inputs

@@ -1,8 +1,9 @@
 """tracker node: a :class:`~services.tracker.session.TrackerSession` on Zenoh.
 
 The session holds the tracker's coordination (keyframe life, ``wait_for_masks``, end of
-sequence, acks); this adapter opens the bus, ticks the session for its time-outs and
-announces the service with a liveliness token.
+sequence, acks); this adapter opens the bus, runs the worker that hands the session its
+frames in order (masks and CLIP features bypass it, on their subscriptions' threads), ticks
+the session for its time-outs and announces the service with a liveliness token.
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ import logging
 
 from services.tracker.session import TrackerSession
 from shared.config.root import TrackGraphConfig
-from shared.runtime.session import Ticker
+from shared.runtime.session import Inbox, Ticker
 from shared.topics import Topics
 from shared.transport import ZenohBus
 
@@ -30,7 +31,9 @@ class TrackerNode:
         self.cfg = cfg
         self.core = tracker if tracker is not None else build_tracker(cfg)
         self.bus = ZenohBus(session, cfg.robot_id, cfg.transport.codec) if session is not None else ZenohBus.open(cfg.transport, cfg.robot_id)
-        self.session = TrackerSession(self.bus, cfg, self.core)
+        # Live, a frame waits behind at most one other here; lossless, the source's window and more.
+        self.inbox = Inbox(1 if cfg.source.mode == "live" else 64, name="tracker:worker")
+        self.session = TrackerSession(self.bus, cfg, self.core, inbox=self.inbox)
         self.book = self.session.book
         self.subs = [self.session.inputs[n] for n in ("frames", "keyframe_masks", "keyframe_features", "end_of_sequence")]
         self._ticker = Ticker(self.session.tick, TICK_S, name="tracker:tick")

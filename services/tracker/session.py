@@ -31,7 +31,7 @@ from shared.messages.frames import EndOfSequence, Frame, FrameAck, TrackedFrame
 from shared.messages.keyframes import KeyframeMasks, KeyframeRequest, MaskFeatures, TrackFeatures
 from shared.perception import Masks
 from shared.runtime.bus import Bus
-from shared.runtime.session import LATER, Session
+from shared.runtime.session import LATER, Inbox, Session
 
 log = logging.getLogger(__name__)
 
@@ -47,17 +47,17 @@ class TrackerSession(Session):
 
     def __init__(
         self, bus: Bus, cfg: TrackGraphConfig, core: Any, *, wait_for_masks: bool | None = None,
-        clock: Callable[[], float] = time.monotonic,
+        clock: Callable[[], float] = time.monotonic, inbox: Inbox | None = None,
     ) -> None:  # fmt: skip
-        super().__init__(bus, clock=clock)
+        super().__init__(bus, clock=clock, inbox=inbox)
         self.core = core
         self.timeout_s = cfg.tracker.keyframe_timeout_s
         self.wait_for_masks = cfg.tracker.wait_for_masks if wait_for_masks is None else wait_for_masks
         live = cfg.source.mode == "live"
         # Lossless: the source is paced to source.window_frames ahead; room for more. Live, the
-        # subscription keeps the newest two and at most one more frame waits here behind a
-        # keyframe: a deeper queue would let the tracker fall seconds behind a live camera
-        # before it dropped anything.
+        # subscription keeps the newest two and at most one more frame waits behind the one
+        # being tracked (the node's inbox, or here behind a keyframe): a deeper queue would let
+        # the tracker fall seconds behind a live camera before it dropped anything.
         capacity = 2 if live else 4 * cfg.source.window_frames
         self.hold_capacity = 1 if live else capacity
         self.live = live
@@ -86,10 +86,11 @@ class TrackerSession(Session):
         self.features = self.output("tracks_features", TrackFeatures)
         self.ends = self.output("tracks_end", EndOfSequence)
         self.acks = self.output("frame_ack", FrameAck)
-        self.subscribe("frames", Frame, self._on_frame, policy="latest" if live else "fifo", capacity=capacity)
+        # Frames and the end of the sequence in their order; masks and features past them.
+        self.subscribe("frames", Frame, self._on_frame, policy="latest" if live else "fifo", capacity=capacity, queued=True)
         self.subscribe("keyframe_masks", KeyframeMasks, self._on_masks, capacity=16)
         self.subscribe("keyframe_features", MaskFeatures, self._on_features, capacity=16)
-        self.subscribe("end_of_sequence", EndOfSequence, self._on_end, capacity=4)
+        self.subscribe("end_of_sequence", EndOfSequence, self._on_end, capacity=4, queued=True)
         self._refresh()
 
     # ---------------------------------------------------------------- frames
@@ -106,19 +107,20 @@ class TrackerSession(Session):
         return LATER  # counted when tracked, failed or dropped
 
     def _hold(self, frame: Frame) -> None:
-        if len(self.held) >= self.hold_capacity:
-            # Live: the newest frame matters, the oldest waiting one goes. Lossless: the queue
-            # is full, as a full subscription the new one is lost (counted; the source never
-            # gets so far ahead when it paces on acks).
-            lost = self.held.popleft() if self.live else frame
-            if not self.live:
-                log.warning("frame %d dropped: %d frames already wait for keyframe masks", frame.frame_index, len(self.held))
-            else:
-                self.held.append(frame)
-            self.book.count("frames", "dropped")
-            self._last_handled = max(self._last_handled, lost.frame_index)
+        if len(self.held) < self.hold_capacity:
+            self.held.append(frame)
             return
-        self.held.append(frame)
+        if self.live:
+            # the newest frame matters: the oldest waiting one goes
+            lost = self.held.popleft()
+            self.held.append(frame)
+        else:
+            # full, as a full subscription: the new one is lost (a source that paces on acks
+            # never gets this far ahead)
+            lost = frame
+            log.warning("frame %d dropped: %d frames already wait for keyframe masks", frame.frame_index, len(self.held))
+        self.book.count("frames", "dropped")
+        self._last_handled = max(self._last_handled, lost.frame_index)
 
     def _begin(self, frame: Frame, t0: float) -> None:
         try:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import queue
 import threading
 import time
 from collections.abc import Callable
@@ -86,6 +87,62 @@ class FairLock:
         self.release()
 
 
+class Inbox:
+    """One ordered queue in front of a session's queued inputs, worked off by one thread.
+
+    A node gives one to its session: each subscription's thread then only decodes and queues
+    (a hostile flood is rejected at decode and never waits behind a slow frame), and one worker
+    hands the session its inputs in the order they arrived across keys. When the queue is full
+    the subscription's thread waits here, its own queue fills and drops what comes (counted).
+    Without one (``trackgraph map``), the bus's delivery is the order.
+    """
+
+    def __init__(self, capacity: int, *, name: str) -> None:
+        self.name = name
+        self._q: queue.Queue[tuple[str, Callable[[], None]]] = queue.Queue(maxsize=capacity)
+        self._waiting: collections.Counter[str] = collections.Counter()
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def put(self, input_name: str, work: Callable[[], None]) -> None:
+        with self._lock:
+            self._waiting[input_name] += 1
+        while not self._stop.is_set():
+            try:
+                self._q.put((input_name, work), timeout=0.2)
+                return
+            except queue.Full:
+                continue
+        with self._lock:  # stopping: it will not be handled
+            self._waiting[input_name] -= 1
+
+    def pending(self, *names: str) -> int:
+        """Messages of these inputs (all when none named) queued and not yet being handled."""
+        with self._lock:
+            return sum(n for k, n in self._waiting.items() if not names or k in names)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                input_name, work = self._q.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            with self._lock:  # being handled now: no longer waiting
+                self._waiting[input_name] -= 1
+            try:
+                work()
+            except Exception:  # noqa: BLE001 - the session counts its own failures; this is a last resort
+                log.exception("%s: work item failed", self.name)
+
+    def stop(self) -> None:
+        """Stop after the item being handled; what is still queued is dropped."""
+        self._stop.set()
+        if self._thread is not threading.current_thread():
+            self._thread.join(timeout=30)
+
+
 class Output(Generic[M]):
     """A publisher of one topic that counts what it sends in the session's book."""
 
@@ -127,8 +184,10 @@ class Session:
     service: ClassVar[str]
     serialized: ClassVar[bool] = True
 
-    def __init__(self, bus: Bus, *, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(self, bus: Bus, *, clock: Callable[[], float] = time.monotonic, inbox: Inbox | None = None) -> None:
         self.bus = bus
+        self.inbox = inbox
+        """Where the queued inputs wait for their turn, when the caller runs one."""
         self.topics = Topics(bus.robot_id)
         self.clock = clock
         self.book = StatusBook(self.service, clock=clock)
@@ -147,25 +206,36 @@ class Session:
         return out
 
     def subscribe(
-        self, name: str, msg_type: type[M], handler: Callable[[M], Any], *, policy: Policy = "fifo", capacity: int = 64
-    ) -> Endpoint:
+        self, name: str, msg_type: type[M], handler: Callable[[M], Any], *, policy: Policy = "fifo", capacity: int = 64,
+        queued: bool = False,
+    ) -> Endpoint:  # fmt: skip
         """Feed topic ``name`` to ``handler(body)``; counted received, then processed (unless
-        the handler returns :data:`LATER`) or rejected (it raised)."""
+        the handler returns :data:`LATER`) or rejected (it raised). A ``queued`` input goes
+        through the session's :class:`Inbox` when it has one, in arrival order with the other
+        queued inputs; the others are handled on their subscription's thread at once."""
         book = self.book
 
-        def deliver(env: Envelope[M]) -> None:
-            book.count(name, "received")
+        def handle(env: Envelope[M]) -> None:
             if self.serialized:
                 with self.lock:
                     self.handle(name, handler, env)
             else:
                 self.handle(name, handler, env)
 
+        inbox = self.inbox if queued else None
+
+        def deliver(env: Envelope[M]) -> None:
+            book.count(name, "received")
+            if inbox is None:
+                handle(env)
+            else:
+                inbox.put(name, lambda: handle(env))
+
         sub = self.bus.subscribe(
             getattr(self.topics, name), msg_type, deliver, policy=policy, capacity=capacity, name=f"{self.service}:{name}",
             on_drop=lambda: book.count(name, "dropped"), on_reject=lambda _why: book.count(name, "rejected"),
         )  # fmt: skip
-        book.declare_input(name, sub.pending)
+        book.declare_input(name, sub.pending if inbox is None else (lambda: sub.pending() + inbox.pending(name)))
         self.inputs[name] = sub
         return sub
 
@@ -205,8 +275,9 @@ class Session:
             self.book.count(name, "processed")
 
     def queued(self, *names: str) -> int:
-        """Messages of these inputs (all when none named) waiting in their queues."""
-        return sum(ep.pending() for n, ep in self.inputs.items() if (not names or n in names) and hasattr(ep, "pending"))
+        """Messages of these inputs (all when none named) waiting in their queues, the inbox's included."""
+        waiting = sum(ep.pending() for n, ep in self.inputs.items() if (not names or n in names) and hasattr(ep, "pending"))
+        return waiting + (self.inbox.pending(*names) if self.inbox is not None else 0)
 
     # ---------------------------------------------------------------- running
 
@@ -215,11 +286,14 @@ class Session:
         return None
 
     def close(self) -> None:
-        """Close this session's subscriptions, queryables and publishers (not the bus). Not
-        under the lock: a subscription's close waits for its thread, which may want it."""
+        """Stop the inbox after the item in hand (subscription threads waiting for room in it
+        give up), close this session's subscriptions, queryables and publishers (not the
+        bus). Not under the lock: a subscription's close waits for its thread, which may want it."""
         if self._closed:
             return
         self._closed = True
+        if self.inbox is not None:
+            self.inbox.stop()
         for ep in list(self.inputs.values()):
             try:
                 ep.close()

@@ -4,6 +4,7 @@ handler counted and survived, held messages counted later, queryables, the ticke
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -118,3 +119,44 @@ def test_fair_lock_is_reentrant_and_first_come_first_served():
     assert order == [0, 1, 2, 3]
     with pytest.raises(RuntimeError, match="does not hold"):
         lock.release()
+
+
+def test_an_inbox_orders_queued_inputs_across_keys_and_counts_what_waits():
+    from shared.runtime.session import Inbox
+
+    class Two(Session):
+        service = "fusion"
+
+        def __init__(self, bus, inbox) -> None:
+            super().__init__(bus, inbox=inbox)
+            self.seen: list[tuple[str, int]] = []
+            self.gate = threading.Event()
+            self.subscribe("tracks_frame", FrameAck, lambda m: self.on("frame", m), queued=True)
+            self.subscribe("tracks_end", FrameAck, lambda m: self.on("end", m), queued=True)
+            self.subscribe("frame_ack", FrameAck, lambda m: self.seen.append(("direct", m.frame_index)))
+
+        def on(self, what: str, msg: FrameAck) -> None:
+            self.gate.wait(5)
+            self.seen.append((what, msg.frame_index))
+
+    bus = InProcessBus()
+    inbox = Inbox(8, name="test:inbox")
+    s = Two(bus, inbox)
+    t = Topics("robot0")
+    frames, end, ack = (bus.publisher(k, FrameAck) for k in (t.tracks_frame, t.tracks_end, t.frame_ack))
+    frames.put(FrameAck(frame_index=0, service="fusion"))
+    end.put(FrameAck(frame_index=1, service="fusion"))
+    frames.put(FrameAck(frame_index=2, service="fusion"))
+    ack.put(FrameAck(frame_index=9, service="fusion"))
+    bus.drain()  # queued ones wait behind the gate on the inbox's thread; the direct one is done
+    assert s.seen == [("direct", 9)]
+    assert s.queued("tracks_frame") + s.queued("tracks_end") >= 2  # one may be in hand already
+    s.gate.set()
+    deadline = time.monotonic() + 5
+    while len(s.seen) < 4 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert s.seen == [("direct", 9), ("frame", 0), ("end", 1), ("frame", 2)]
+    assert s.queued() == 0
+    report = {c.name: c for c in s.book.report().inputs}
+    assert report["tracks_frame"].processed == 2 and report["tracks_end"].processed == 1
+    s.close()
