@@ -1,8 +1,9 @@
-"""keyframe_vl node: ``keyframe/request`` in; ``keyframe/masks`` as soon as segmentation is
-done, ``keyframe/features`` when CLIP is done; the ``vl/embed`` queryable; a liveliness token.
+"""keyframe_vl node: a :class:`~services.keyframe_vl.session.KeyframeVLSession` on Zenoh.
 
-CLIP runs on its own thread behind a bounded queue, so the next keyframe's masks never wait
-for the previous keyframe's features.
+CLIP runs on this node's own thread behind a bounded queue, so the next keyframe's masks
+never wait for the previous keyframe's features; when CLIP falls 8 keyframes behind, the
+request subscription waits for room (its queue then drops, counted) rather than letting
+the backlog grow.
 """
 
 from __future__ import annotations
@@ -10,106 +11,80 @@ from __future__ import annotations
 import logging
 import queue
 import threading
-import time
-
-import numpy as np
 
 from services.keyframe_vl.core import KeyframeVLCore
+from services.keyframe_vl.session import ClipJob, KeyframeVLSession
 from shared.config.root import TrackGraphConfig
-from shared.messages.base import Envelope
-from shared.messages.keyframes import KeyframeMasks, KeyframeRequest, MaskFeatures
-from shared.messages.rpc import EmbedReply, EmbedRequest
 from shared.topics import Topics
-from shared.transport import (
-    TypedPublisher,
-    TypedQueryable,
-    TypedSubscriber,
-    declare_alive,
-    open_session,
-)
+from shared.transport import ZenohBus
 
 log = logging.getLogger(__name__)
+
+CLIP_QUEUE = 8
+"""Keyframes whose masks are out and whose CLIP features wait for the CLIP thread."""
 
 
 class KeyframeVLNode:
     """Wires a :class:`KeyframeVLCore` to Zenoh; ``close()`` undeclares everything."""
 
     def __init__(self, cfg: TrackGraphConfig, core: KeyframeVLCore | None = None, session=None) -> None:
+        from services.keyframe_vl.build import build_keyframe_vl
+
         self.cfg = cfg
-        self.core = core or KeyframeVLCore(cfg.keyframe_vl)
-        self.topics = Topics(cfg.robot_id)
-        self._own_session = session is None
-        self.session = session or open_session(cfg.transport)
-        codec = cfg.transport.codec
-        self.masks_pub = TypedPublisher(self.session, self.topics.keyframe_masks, KeyframeMasks, robot_id=cfg.robot_id, codec=codec)
-        self.features_pub = TypedPublisher(self.session, self.topics.keyframe_features, MaskFeatures, robot_id=cfg.robot_id, codec=codec)
-        self._clip_jobs: queue.Queue = queue.Queue(maxsize=8)
+        self.core = core or build_keyframe_vl(cfg)
+        self.bus = ZenohBus(session, cfg.robot_id, cfg.transport.codec) if session is not None else ZenohBus.open(cfg.transport, cfg.robot_id)
+        self._clip_jobs: queue.Queue[ClipJob] = queue.Queue(maxsize=CLIP_QUEUE)
         self._stop = threading.Event()
+        self.session = KeyframeVLSession(self.bus, self.core, defer_clip=self._defer_clip)
+        self.book = self.session.book
+        self.requests = self.session.requests
+        self.embed = self.session.embed
         self._clip_thread = threading.Thread(target=self._clip_loop, name="keyframe_vl:clip", daemon=True)
         self._clip_thread.start()
-        self.processed = 0
-        self.failed = 0
-        self.embed = TypedQueryable(
-            self.session, self.topics.vl_embed, EmbedRequest, EmbedReply, self._on_embed,
-            robot_id=cfg.robot_id, codec=codec, workers=2,
-        )  # fmt: skip
-        self.requests = TypedSubscriber(
-            self.session, self.topics.keyframe_request, KeyframeRequest,
-            codec=codec, policy="fifo", capacity=4, callback=self._on_request, name="keyframe_vl:requests",
-        )  # fmt: skip
-        self.token = declare_alive(self.session, self.topics.alive("keyframe_vl"))
+        self.token = self.bus.declare_alive(Topics(cfg.robot_id).alive("keyframe_vl"))
+        self.book.set_state("running")
+        self._closed = False
 
-    def _on_request(self, env: Envelope[KeyframeRequest]) -> None:
-        req = env.body
-        t0 = time.perf_counter()
-        try:
-            image, masks, msg = self.core.segment(req)
-        except Exception as exc:  # noqa: BLE001 - answer the tracker, keep serving
-            self.failed += 1
-            log.exception("keyframe %d: segmentation failed", req.frame_index)
-            h, w = req.rgb.shape[:2]
-            empty = KeyframeMasks(
-                frame_index=req.frame_index, masks=np.zeros((0, h, w), bool), boxes=np.zeros((0, 4), np.float32),
-                scores=np.zeros(0, np.float32), error=f"{type(exc).__name__}: {exc}",
-            )  # fmt: skip
-            self.masks_pub.put(empty)
-            return
-        self.masks_pub.put(msg)
-        self.processed += 1
-        log.debug("keyframe %d: %d masks in %.0f ms", req.frame_index, len(masks), 1000 * (time.perf_counter() - t0))
-        self._clip_jobs.put((image, masks))
+    def _defer_clip(self, job: ClipJob) -> None:
+        # On the request subscription's thread: waiting here is the backpressure.
+        while not self._stop.is_set():
+            try:
+                self._clip_jobs.put(job, timeout=0.2)
+                return
+            except queue.Full:
+                continue
 
     def _clip_loop(self) -> None:
         while not self._stop.is_set():
             try:
-                image, masks = self._clip_jobs.get(timeout=0.2)
+                job = self._clip_jobs.get(timeout=0.2)
             except queue.Empty:
                 continue
-            try:
-                msg = self.core.features(image, masks)
-            except Exception as exc:  # noqa: BLE001
-                log.exception("keyframe %d: CLIP failed", image.frame_index)
-                msg = MaskFeatures(frame_index=image.frame_index, features=np.zeros((0, 1), np.float32), model=self.core.encoder.name, error=f"{type(exc).__name__}: {exc}")
-            self.features_pub.put(msg)
+            self.session.run_clip(job)
 
-    def _on_embed(self, env: Envelope[EmbedRequest]) -> EmbedReply:
-        return self.core.embed(env.body)
+    @property
+    def processed(self) -> int:
+        return self.session.processed
+
+    @property
+    def failed(self) -> int:
+        return self.session.failed
 
     def stats(self) -> dict:
         return {
-            "processed": self.processed,
-            "failed": self.failed,
+            "processed": self.session.processed,
+            "failed": self.session.failed,
             "requests": self.requests.stats.as_dict(),
             "embed": self.embed.stats.as_dict(),
         }
 
-    def close(self) -> None:
+    def close(self, keep_bus: bool = False) -> None:
+        if self._closed:
+            return
+        self._closed = True
         self._stop.set()
-        self.requests.close()
-        self.embed.close()
+        self.session.close()
         self._clip_thread.join(timeout=10)
         self.token.undeclare()
-        self.masks_pub.close()
-        self.features_pub.close()
-        if self._own_session:
-            self.session.close()
+        if not keep_bus:
+            self.bus.close()

@@ -23,6 +23,10 @@ from shared.messages.frames import Frame
 log = logging.getLogger(__name__)
 
 
+MAX_REJECTED_KEPT = 100
+"""Reasons kept of the frames a reader refused (``trackgraph map`` reports the first 20)."""
+
+
 @dataclass
 class ReplayStats:
     """What a replay did; published in the EndOfSequence message."""
@@ -34,6 +38,8 @@ class ReplayStats:
     dropped_indices: list[int] = field(default_factory=list)
     rejected: int = 0
     """Frames the reader refused (a corrupt image, a NaN pose): logged, counted, skipped."""
+    rejected_errors: list[str] = field(default_factory=list)
+    """Why, for the first ``MAX_REJECTED_KEPT`` of them."""
     seconds: float = 0.0
 
 
@@ -49,6 +55,75 @@ def replay_plan(n_frames: int, cfg: SourceConfig) -> list[tuple[int, int]]:
     return [(i, lap * n_frames + i) for lap in range(cfg.loops) for i in plan]
 
 
+class ReplayCursor:
+    """The replay plan and where it stands: which frame goes next, when it is due, and what
+    became of every frame so far (:class:`ReplayStats`). No clock of its own: callers say
+    what time it is, so a blocking loop (:func:`replay`) and the source's session drive it
+    alike."""
+
+    def __init__(self, reader: SequenceReader, cfg: SourceConfig) -> None:
+        self.reader, self.cfg = reader, cfg
+        self.n = len(reader)
+        self.plan = replay_plan(self.n, cfg)
+        self.stats = ReplayStats(planned=len(self.plan))
+        self.period = 1.0 / cfg.rate_hz
+        self.k = 0
+        """Plan position of the next frame."""
+        self.t0: float | None = None
+
+    @property
+    def done(self) -> bool:
+        return self.k >= len(self.plan)
+
+    def start(self, now: float) -> None:
+        """The replay's clock starts: live frame k is due ``k / rate_hz`` after this."""
+        if self.t0 is None:
+            self.t0 = now
+
+    def wait(self, now: float) -> float:
+        """Seconds until the next frame is due (0: now). Live, a frame whose slot has passed
+        is dropped and counted first, never loaded; lossless, every frame is due at once."""
+        self.start(now)
+        if self.cfg.mode != "live":
+            return 0.0
+        while not self.done:
+            due = self.t0 + self.k * self.period
+            if now > due + self.period:
+                self.stats.dropped += 1
+                self.stats.dropped_indices.append(self.plan[self.k][1])
+                self.k += 1
+                continue
+            return max(due - now, 0.0)
+        return 0.0
+
+    def send(self, publish: Callable[[Frame], None]) -> Frame | None:
+        """Read the next frame and publish it; None if the reader refused it (logged, counted)."""
+        i, number = self.plan[self.k]
+        self.k += 1
+        try:
+            frame = self.reader.frame(i)
+        except DatasetError as exc:
+            self.stats.rejected += 1
+            if len(self.stats.rejected_errors) < MAX_REJECTED_KEPT:
+                self.stats.rejected_errors.append(str(exc))
+            log.warning("frame %d refused: %s", i, exc)
+            return None
+        if number != i:
+            lap = number // self.n
+            frame = frame.model_copy(update={"frame_index": number, "time_s": frame.time_s + lap * self.n / self.cfg.rate_hz})
+        publish(frame)
+        self.stats.published += 1
+        self.stats.last_frame_index = number
+        return frame
+
+    def close(self, now: float) -> ReplayStats:
+        """The replay is over (done or stopped): its duration, and a warning for drops."""
+        self.stats.seconds = now - (now if self.t0 is None else self.t0)
+        if self.stats.dropped:
+            log.warning("live replay dropped %d of %d frames (subscriber lagging)", self.stats.dropped, self.stats.planned)
+        return self.stats
+
+
 def replay(
     reader: SequenceReader,
     cfg: SourceConfig,
@@ -60,48 +135,28 @@ def replay(
     on_progress: Callable[[ReplayStats], None] | None = None,
     pace: Callable[[int], None] | None = None,
 ) -> ReplayStats:
-    """Send the planned frames of ``reader`` through ``publish`` under ``cfg.mode``;
+    """Send the planned frames of ``reader`` through ``publish`` under ``cfg.mode``, blocking
+    (scripts and tests; the source service runs :class:`services.source.session.SourceSession`);
     in lossless mode ``pace(k)`` is called before the k-th frame and returns when the
     pipeline is ready for it (see :class:`Pacer`)."""
-    n = len(reader)
-    plan = replay_plan(n, cfg)
-    stats = ReplayStats(planned=len(plan))
-    period = 1.0 / cfg.rate_hz
-    t0 = clock()
-    for k, (i, number) in enumerate(plan):
+    cursor = ReplayCursor(reader, cfg)
+    cursor.start(clock())
+    while not cursor.done:
         if should_stop():
             break
         if cfg.mode == "live":
-            due = t0 + k * period
-            now = clock()
-            if now > due + period:
-                stats.dropped += 1
-                stats.dropped_indices.append(number)
-                continue
-            if now < due:
-                sleep(due - now)
+            delay = cursor.wait(clock())
+            if cursor.done:
+                break
+            if delay > 0:
+                sleep(delay)
         elif pace is not None:
-            pace(k)
+            pace(cursor.k)
             if should_stop():
                 break
-        try:
-            frame = reader.frame(i)
-        except DatasetError as exc:
-            stats.rejected += 1
-            log.warning("frame %d refused: %s", i, exc)
-            continue
-        if number != i:
-            lap = number // n
-            frame = frame.model_copy(update={"frame_index": number, "time_s": frame.time_s + lap * n / cfg.rate_hz})
-        publish(frame)
-        stats.published += 1
-        stats.last_frame_index = number
-        if on_progress is not None:
-            on_progress(stats)
-    stats.seconds = clock() - t0
-    if stats.dropped:
-        log.warning("live replay dropped %d of %d frames (subscriber lagging)", stats.dropped, stats.planned)
-    return stats
+        if cursor.send(publish) is not None and on_progress is not None:
+            on_progress(cursor.stats)
+    return cursor.close(clock())
 
 
 class Pacer:
@@ -161,9 +216,13 @@ class Pacer:
         """The counted stages that have not yet acknowledged frame k - ``window``."""
         return {s for s in self.counted(alive, k) if self.done.get(s, -1) < k - self.window}
 
-    def ready(self, k: int, alive: set[str]) -> bool:
+    def holding(self, k: int, alive: set[str]) -> set[str]:
+        """The stages frame ``k`` waits for now; empty when it may go."""
         with self._cv:
-            return not self._holding(k, alive)
+            return self._holding(k, alive)
+
+    def ready(self, k: int, alive: set[str]) -> bool:
+        return not self.holding(k, alive)
 
     def wait(self, k: int, alive: Callable[[], set[str]], should_stop: Callable[[], bool], poll_s: float = 0.1) -> None:
         """Block until frame ``k`` may go, or ``should_stop``; ``alive`` is re-read while

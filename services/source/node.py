@@ -1,27 +1,25 @@
-"""Source node: publishes a sequence's frames on ``frames`` and an EndOfSequence after them.
+"""Source node: a :class:`~services.source.session.SourceSession` on Zenoh, replaying a
+sequence's frames on ``frames`` and an EndOfSequence after them.
 
-In lossless mode it is paced by the pipeline's ``frames/ack`` (``core.Pacer``): at most
-``source.window_frames`` ahead of the slowest of ``source.ack_from`` that is alive."""
+In lossless mode it is paced by the pipeline's ``frames/ack``: at most
+``source.window_frames`` ahead of the slowest of ``source.ack_from`` that is alive (their
+liveliness tokens say which). Its ``ServiceStatus`` goes out every second on
+``status/source``; the last one is also written to ``status_file``."""
 
 from __future__ import annotations
 
 import logging
 import threading
+import time
 from pathlib import Path
 
-from services.source.core import Pacer, ReplayStats, replay, replay_plan
+from services.source.core import ReplayStats
+from services.source.session import SourceSession
 from shared.config.root import TrackGraphConfig
 from shared.datasets import open_sequence
-from shared.messages.frames import EndOfSequence, Frame, FrameAck
+from shared.runtime.status import StatusReporter
 from shared.topics import Topics, service_of_alive_key
-from shared.transport import (
-    LivelinessWatcher,
-    TransportError,
-    TypedPublisher,
-    TypedSubscriber,
-    declare_alive,
-    open_session,
-)
+from shared.transport import LivelinessWatcher, TransportError, ZenohBus
 
 log = logging.getLogger(__name__)
 
@@ -33,54 +31,66 @@ def run_source(
     stop: threading.Event | None = None,
     wait_subscribers_s: float = 30.0,
     progress: bool = True,
+    status_file: Path | None = None,
 ) -> ReplayStats:
     """Replay ``sequence`` over Zenoh per ``cfg.source``; returns what was sent and dropped."""
     stop = stop or threading.Event()
     reader = open_sequence(sequence, cfg.source.dataset, cfg.source)
     topics = Topics(cfg.robot_id)
-    session = open_session(cfg.transport)
+    bus = ZenohBus.open(cfg.transport, cfg.robot_id)
+    reporter = session = alive = token = bar = None
     try:
-        token = declare_alive(session, topics.alive("source"))
-        pub = TypedPublisher(session, topics.frames, Frame, robot_id=cfg.robot_id, codec=cfg.transport.codec)
-        end = TypedPublisher(session, topics.end_of_sequence, EndOfSequence, robot_id=cfg.robot_id, codec=cfg.transport.codec)
-        if cfg.source.mode == "lossless" and not pub.wait_for_subscribers(wait_subscribers_s):
-            raise TransportError(f"{topics.frames}: no subscriber after {wait_subscribers_s:.1f} s; lossless replay would lose frames")
-        log.info("replaying %s (%d frames, %s mode) on %s", sequence, len(reader), cfg.source.mode, topics.frames)
-        plan = [number for _, number in replay_plan(len(reader), cfg.source)]
-        bar = _progress_bar(progress, total=len(plan))
-        pacer = Pacer(plan, cfg.source.window_frames, cfg.source.ack_from, hold_gone_s=cfg.source.hold_gone_s)
-        acks = TypedSubscriber(session, topics.frame_ack, FrameAck, codec=cfg.transport.codec, capacity=256,
-                               callback=lambda env: pacer.ack(env.body.service, env.body.frame_index))  # fmt: skip
-        alive = LivelinessWatcher(session, topics.alive_all)
+        token = bus.declare_alive(topics.alive("source"))
+        alive = LivelinessWatcher(bus.session, topics.alive_all)
+        wake = threading.Event()
 
         def stages() -> set[str]:
             return {service_of_alive_key(k) for k in alive.alive()}
 
-        try:
-            stats = replay(
-                reader,
-                cfg.source,
-                pub.put,
-                should_stop=stop.is_set,
-                on_progress=(lambda s: bar.update(1)) if bar is not None else None,
-                pace=lambda k: pacer.wait(k, stages, stop.is_set),
-            )
-        finally:
-            acks.close()
-            alive.close()
+        session = SourceSession(bus, reader, cfg.source, alive=stages, on_ack=wake.set)
+        bar = _progress_bar(progress, total=len(session.cursor.plan))
         if bar is not None:
-            bar.close()
-        end.put(EndOfSequence(frames_published=stats.published, frames_dropped=stats.dropped, last_frame_index=stats.last_frame_index))
+            session.on_progress = lambda _stats: bar.update(1)
+        reporter = StatusReporter(session.book, bus, topics.status("source"))
+        if cfg.source.mode == "lossless" and not _wait_for(session.frames_out.has_subscribers, wait_subscribers_s, stop):
+            raise TransportError(f"{topics.frames}: no subscriber after {wait_subscribers_s:.1f} s; lossless replay would lose frames")
+        log.info("replaying %s (%d frames, %s mode) on %s", sequence, len(reader), cfg.source.mode, topics.frames)
+        session.book.set_state("running")
+        while not stop.is_set():
+            wake.clear()
+            delay = session.tick(time.monotonic())
+            if delay is None:
+                break
+            if delay > 0:
+                wake.wait(delay)
+        stats = session.finish(time.monotonic())  # stopped early: what was sent so far
         log.info(
             "published %d frames in %.1f s (%.1f Hz), dropped %d, refused by the reader %d, held %.1f s for restarting stages",
-            stats.published, stats.seconds, stats.published / max(stats.seconds, 1e-9), stats.dropped, stats.rejected, pacer.held_s,
+            stats.published, stats.seconds, stats.published / max(stats.seconds, 1e-9), stats.dropped, stats.rejected, session.pacer.held_s,
         )  # fmt: skip
-        pub.close()
-        end.close()
-        token.undeclare()
         return stats
     finally:
-        session.close()
+        if bar is not None:
+            bar.close()
+        if alive is not None:
+            alive.close()
+        if session is not None:
+            session.close()
+        if token is not None:
+            token.undeclare()
+        if reporter is not None:
+            reporter.stop(status_file)
+        bus.close()
+
+
+def _wait_for(cond, timeout: float, stop: threading.Event) -> bool:
+    """Wait until ``cond()`` (lossless replay must not publish into the void)."""
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() >= deadline or stop.is_set():
+            return False
+        time.sleep(0.02)
+    return True
 
 
 def _progress_bar(enabled: bool, total: int | None):

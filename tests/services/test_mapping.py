@@ -14,7 +14,8 @@ import pytest
 
 from services.cli import main
 from services.fusion.core import FusionCore
-from services.mapping import build_tracker, prepare_config
+from services.mapping import prepare_config
+from services.tracker.build import build_tracker
 from shared.config import TrackGraphConfig
 from shared.datasets import open_sequence
 from shared.eval import eval_instances
@@ -112,13 +113,13 @@ def test_resume_gives_the_uninterrupted_graph(small, tmp_path):
                 fusion.add_track_features(feats)
             fusion.add_frame(tracked)
 
-    tracker, _ = build_tracker(cfg)
+    tracker = build_tracker(cfg)
     whole = FusionCore(cfg.fusion, device="cpu")
     run(range(n), whole, tracker)
     whole.finish()
     reference = whole.snapshot()
 
-    tracker, _ = build_tracker(cfg)
+    tracker = build_tracker(cfg)
     first = FusionCore(cfg.fusion, device="cpu")
     run(range(n // 2), first, tracker)
     store = MapStore(tmp_path / "graph")

@@ -17,6 +17,8 @@ from PIL import Image
 from services.router import run_router
 from shared.config import TransportConfig
 from shared.messages import EndOfSequence, Frame, FrameAck
+from shared.messages.status import ServiceStatus
+from shared.runtime.status import read_status
 from shared.topics import Topics
 from shared.transport import TypedPublisher, TypedSubscriber, declare_alive, open_session
 
@@ -83,11 +85,15 @@ def test_lossless_replay_is_paced_by_the_stages_and_delivers_every_frame(tmp_pat
 
     frames = TypedSubscriber(session, topics.frames, Frame, policy="fifo", capacity=4, callback=slow_stage)
     ends = TypedSubscriber(session, topics.end_of_sequence, EndOfSequence)
+    reports: list[ServiceStatus] = []
+    status = TypedSubscriber(session, topics.status("source"), ServiceStatus, callback=lambda env: reports.append(env.body))
     cfg = tmp_path / "cfg.yaml"
     cfg.write_text("source:\n  window_frames: 2\n")
+    status_file = tmp_path / "source.status.json"
     try:
         t0 = time.monotonic()
-        proc = subprocess.run(_source_cmd(seq, router, "--config", str(cfg)), capture_output=True, text=True, timeout=60, cwd=REPO)
+        cmd = _source_cmd(seq, router, "--config", str(cfg), "--status-file", str(status_file))
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=60, cwd=REPO)
         took = time.monotonic() - t0
         assert proc.returncode == 0, proc.stderr
         assert json.loads(proc.stdout.strip().splitlines()[-1]) | {"seconds": 0} == {"published": 12, "dropped": 0, "seconds": 0}
@@ -99,7 +105,16 @@ def test_lossless_replay_is_paced_by_the_stages_and_delivers_every_frame(tmp_pat
         assert got == list(range(12))
         assert frames.stats.dropped == 0
         assert took > 0.9  # it waited for the stage (12 frames at 0.1 s, 2 ahead)
+        final = read_status(status_file)
+        assert final.state == "stopped" and final.frames_done == final.frames_expected == 12
+        assert final.figures["published"] == 12 and final.figures["dropped"] == 0 and final.published["frames"] == 12
+        assert {c.name: c.processed for c in final.inputs}["frame_ack"] >= 12 - 2  # the last ones may come after it is done
+        deadline = time.monotonic() + 5
+        while not any(r.state == "stopped" for r in reports) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert any(r.state == "stopped" for r in reports), reports
     finally:
+        status.close()
         frames.close()
         ends.close()
         acks.close()

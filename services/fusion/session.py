@@ -1,0 +1,240 @@
+"""fusion's coordination, without Zenoh: ``tracks/frame`` and ``tracks/features`` in;
+``graph/delta`` out; ``frames/ack`` for every tracked frame fused, already in the map, or
+failed; the ``graph/snapshot`` queryable. The map is finished when the tracker's
+``tracks/end`` has come and every frame and feature message it announces is in (or
+``END_GRACE_S`` after it, with a warning).
+
+With a :class:`~shared.graph.store.MapStore` and a map folder it also keeps the map on disk:
+resumes from the newest snapshot, saves one every ``fusion.snapshot_interval_s``, and at the
+end saves the whole map with the mesh, the OpenLex3D files and ``run.json``. Without
+(``trackgraph map``), the caller writes the map.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from shared.config.root import TrackGraphConfig
+from shared.graph.store import MapStore, StoreError
+from shared.messages.frames import EndOfSequence, FrameAck, TrackedFrame
+from shared.messages.graph import GraphDelta, GraphSnapshot, SnapshotRequest
+from shared.messages.keyframes import TrackFeatures
+from shared.runtime.bus import Bus
+from shared.runtime.session import LATER, Inbox, Session
+
+log = logging.getLogger(__name__)
+
+END_GRACE_S = 15.0
+"""After ``tracks/end``, how long fusion waits for announced messages still on their way."""
+
+
+class FusionSession(Session):
+    """A :class:`~services.fusion.core.FusionCore` on a bus, and optionally on disk in ``out``."""
+
+    service = "fusion"
+
+    def __init__(
+        self, bus: Bus, cfg: TrackGraphConfig, core, *, store: MapStore | None = None, out: Path | None = None,
+        resume: bool = False, clock: Callable[[], float] = time.monotonic, inbox: Inbox | None = None,
+    ) -> None:  # fmt: skip
+        super().__init__(bus, clock=clock, inbox=inbox)
+        if store is not None and out is None:
+            raise ValueError("a fusion session with a store needs its map folder (out) for the final export")
+        self.cfg = cfg
+        self.core = core
+        self.store = store
+        self.out = None if out is None else Path(out)
+        self.resumed_from: str | None = None
+        if resume and store is not None and store.latest_name() is not None:
+            state = store.load()
+            core.load_state_dict(state.extra, state.snapshot)
+            self.resumed_from = str(state.path)
+            log.info("resumed from %s at frame %d (graph %d)", state.path, core.last_frame_index, core.graph.graph_seq)
+        self.finished = threading.Event()
+        self.end: EndOfSequence | None = None
+        self._end_at = 0.0
+        self.features_in = 0
+        self.frames = 0
+        """Frames this process fused (``core.frames`` counts those of the whole map)."""
+        self.duplicates = 0
+        self._first_frame_at: float | None = None
+        self._last_frame_at: float | None = None
+        self._last_save = clock()
+        self._saved_frames = 0
+        self.deltas = self.output("graph_delta", GraphDelta)
+        self.acks = self.output("frame_ack", FrameAck)
+        if core.graph.graph_seq:
+            # a resumed map goes on numbering its deltas where the snapshot left off
+            self.deltas.seq = core.graph.graph_seq
+        self.snapshots = self.serve("graph_snapshot", SnapshotRequest, GraphSnapshot, self._on_snapshot)
+        # All three in one order (the node's inbox): the core sees frames and feature updates
+        # as they arrived, as the in-process pipeline feeds them.
+        self.subscribe("tracks_frame", TrackedFrame, self._on_frame, capacity=16, queued=True)
+        self.subscribe("tracks_features", TrackFeatures, self._on_features, capacity=64, queued=True)
+        self.subscribe("tracks_end", EndOfSequence, self._on_end, capacity=4, queued=True)
+        self._refresh()
+
+    # ---------------------------------------------------------------- inputs
+
+    def _on_frame(self, tf: TrackedFrame) -> object:
+        k = tf.frame.frame_index
+        t0 = self.clock()
+        try:
+            if k <= self.core.last_frame_index:
+                # already in the map (resumed from a snapshot past it, or delivered twice)
+                self.duplicates += 1
+            else:
+                if self._first_frame_at is None:
+                    self._first_frame_at = t0
+                delta = self.core.add_frame(tf)
+                self.frames += 1
+                self._last_frame_at = self.clock()
+                if delta is not None:
+                    self.deltas.put(delta)
+                self.book.work_done(max(self._last_frame_at - t0, 0.0))
+                self._maybe_save(self._last_frame_at)
+            self.book.count("tracks_frame", "processed")
+        except Exception:  # noqa: BLE001 - one bad frame must not stop the map
+            self.book.count("tracks_frame", "rejected")
+            self.book.error()
+            log.exception("fusion failed on a TrackedFrame (frame %d)", k)
+        finally:
+            # fused, already in the map, or failed: a lossless source waits for it
+            try:
+                self.acks.put(FrameAck(frame_index=k, service="fusion"))
+            finally:
+                self._check_end(self.clock())
+                self._refresh()
+        return LATER  # counted above
+
+    def _on_features(self, msg: TrackFeatures) -> None:
+        try:
+            self.core.add_track_features(msg)
+            self.features_in += 1
+        finally:
+            self._check_end(self.clock())
+            self._refresh()
+
+    def _on_end(self, msg: EndOfSequence) -> None:
+        self.end, self._end_at = msg, self.clock()
+        self.book.progress(expected=msg.frames_published)
+        self._check_end(self._end_at)
+        self._refresh()
+
+    def _on_snapshot(self, req: SnapshotRequest) -> GraphSnapshot:
+        # under the lock: a snapshot never sees a half-applied frame
+        with self.lock:
+            return self.core.snapshot(with_mesh=req.with_mesh)
+
+    # ---------------------------------------------------------------- end, saves
+
+    def _check_end(self, now: float) -> None:
+        """Finish the map once everything ``tracks/end`` announced is in."""
+        end = self.end
+        if end is None or self.finished.is_set():
+            return
+        if self.queued("tracks_frame", "tracks_features"):
+            return
+        frames_in = self.core.last_frame_index >= end.last_frame_index
+        feats_in = end.track_features_published is None or self.features_in >= end.track_features_published
+        if not (frames_in and feats_in):
+            if now - self._end_at < END_GRACE_S:
+                return
+            log.warning(
+                "finishing without everything the tracker announced: frames up to %d (have %d), %s feature messages (have %d)",
+                end.last_frame_index, self.core.last_frame_index, end.track_features_published, self.features_in,
+            )  # fmt: skip
+        self.finish()
+
+    def finish(self) -> None:
+        """The final graph update out; with a store the whole map saved and exported."""
+        if self.finished.is_set():
+            return
+        self.deltas.put(self.core.finish())
+        if self.store is not None:
+            self.save(export=True)
+        self.finished.set()
+        self.book.set_state("finished")
+        log.info("sequence finished at frame %d: %d segments", self.core.last_frame_index, len(self.core.segments.segments))
+
+    def _maybe_save(self, now: float) -> None:
+        if self.store is not None and self.frames > self._saved_frames and now - self._last_save >= self.cfg.fusion.snapshot_interval_s:
+            self.save()
+
+    def save(self, export: bool = False) -> None:
+        """A snapshot on disk (atomic, checksummed); with ``export`` also the mesh, the
+        OpenLex3D files and ``run.json`` of ``trackgraph map``."""
+        from services.fusion.export import export_map, run_summary
+        from shared.io import atomic_write_text
+
+        if self.store is None or self.out is None:
+            raise RuntimeError("this fusion session keeps no map on disk")
+        with self.lock:
+            try:
+                snapshot = self.core.snapshot(with_mesh=True, whole_map=export)
+                self.store.save(snapshot, extra_state=self.core.state_dict())
+                if export:
+                    export_map(self.out, self.core)
+                    seconds = self.clock() - (self._first_frame_at or self.clock())
+                    summary = run_summary(self.cfg, self.core, snapshot, frames=self.frames, seconds=seconds, sequence=None)
+                    summary["service"] = "fusion"
+                    # From the first frame fused to the last, without the final save: what a live
+                    # source's rate is compared with (``trackgraph bench run``).
+                    summary["fused_seconds"] = round((self._last_frame_at or 0.0) - (self._first_frame_at or 0.0), 3)
+                    summary.update(self.delivery())
+                    atomic_write_text(self.out / "run.json", json.dumps(summary, indent=2))
+            except (StoreError, OSError) as exc:
+                self.book.error()
+                log.error("snapshot not written: %s", exc)
+            self._last_save = self.clock()
+            self._saved_frames = self.frames
+
+    def delivery(self) -> dict:
+        """Frames in the map against those the source announced: a fusion crash loses the
+        frames after its last snapshot, and a router restart the ones in flight."""
+        announced = None if self.end is None else self.end.frames_published
+        lost = None if announced is None else max(announced - self.core.frames, 0)
+        if lost:
+            log.warning("%d of %d announced frames are not in the map (lost in a crash or on the link)", lost, announced)
+        return {
+            "frames_in_map": self.core.frames,
+            "frames_announced": announced,
+            "frames_lost": lost,
+            "frames_duplicate": self.duplicates,
+            "resumed_from": self.resumed_from,
+        }
+
+    # ---------------------------------------------------------------- time, status, close
+
+    def tick(self, now: float) -> None:
+        """The end of the sequence once its grace is over; a snapshot when one is due."""
+        with self.lock:
+            try:
+                self._check_end(now)
+                self._maybe_save(now)
+            except Exception:  # noqa: BLE001 - the next tick tries again
+                self.book.error()
+                log.exception("fusion: tick failed")
+            self._refresh()
+
+    def _refresh(self) -> None:
+        book = self.book
+        book.progress(done=self.core.frames)
+        book.figure("frames", self.frames)
+        book.figure("frames_in_map", self.core.frames)
+        book.figure("duplicates", self.duplicates)
+        book.figure("graph_seq", self.core.graph.graph_seq)
+        book.figure("finished", self.finished.is_set())
+
+    def close(self, save: bool = True) -> None:
+        """Close the endpoints; with ``save``, keep what was fused since the last snapshot. A
+        finished map was saved whole at its end: saving again would replace that snapshot
+        with one whose mesh is only the active window."""
+        super().close()
+        if save and self.store is not None and self.frames and not self.finished.is_set():
+            self.save()

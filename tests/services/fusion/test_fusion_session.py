@@ -1,0 +1,189 @@
+"""The fusion session over the in-process bus with a fake core and a fake clock: duplicates,
+acks, the end of the sequence once everything announced is in (or after the grace), the
+snapshot queryable, periodic snapshots and resume, a failing frame."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from services.fusion.session import END_GRACE_S, FusionSession
+from shared.config import TrackGraphConfig
+from shared.graph.store import MapStore
+from shared.messages.frames import EndOfSequence, FrameAck, TrackedFrame
+from shared.messages.graph import GraphDelta, GraphSnapshot, SnapshotRequest
+from shared.messages.keyframes import TrackFeature, TrackFeatures
+from shared.runtime.bus import InProcessBus
+from shared.topics import Topics
+
+
+class FakeGraph:
+    graph_seq = 0
+
+
+class FakeSegments:
+    segments: dict = {}
+
+
+class FakeFusion:
+    """The fusion core's protocol: a delta every ``every`` frames; its state is the frame count."""
+
+    def __init__(self, every: int = 2, bad: tuple[int, ...] = ()) -> None:
+        self.every, self.bad = every, set(bad)
+        self.frames = 0
+        self.last_frame_index = -1
+        self.features: list[int] = []
+        self.graph = FakeGraph()
+        self.segments = FakeSegments()
+        self.finished = 0
+
+    def add_frame(self, tf: TrackedFrame) -> GraphDelta | None:
+        if tf.frame.frame_index in self.bad:
+            raise ValueError(f"frame {tf.frame.frame_index} is bad")
+        self.frames += 1
+        self.last_frame_index = tf.frame.frame_index
+        return self._delta() if self.frames % self.every == 0 else None
+
+    def _delta(self) -> GraphDelta:
+        self.graph.graph_seq += 1
+        return GraphDelta(graph_seq=self.graph.graph_seq, frame_index=self.last_frame_index)
+
+    def add_track_features(self, msg: TrackFeatures) -> None:
+        self.features.append(msg.frame_index)
+
+    def finish(self) -> GraphDelta:
+        self.finished += 1
+        return self._delta()
+
+    def snapshot(self, with_mesh: bool = False, whole_map: bool = False) -> GraphSnapshot:
+        return GraphSnapshot(graph_seq=self.graph.graph_seq, frame_index=self.last_frame_index)
+
+    def state_dict(self) -> dict:
+        return {"frames": np.array(self.frames), "last": np.array(self.last_frame_index)}
+
+    def load_state_dict(self, state: dict, snapshot: GraphSnapshot) -> None:
+        self.frames, self.last_frame_index = int(state["frames"]), int(state["last"])
+        self.graph.graph_seq = snapshot.graph_seq
+
+
+class Rig:
+    def __init__(self, clock, core: FakeFusion | None = None, **kw) -> None:
+        self.clock = clock
+        self.bus = InProcessBus("robot0", clock=clock)
+        self.core = core or FakeFusion()
+        cfg = TrackGraphConfig.model_validate({"fusion": {"snapshot_interval_s": 10.0}})
+        self.session = FusionSession(self.bus, cfg, self.core, clock=clock, **kw)
+        t = self.topics = Topics("robot0")
+        self.deltas: list[GraphDelta] = []
+        self.acks: list[int] = []
+        self.bus.subscribe(t.graph_delta, GraphDelta, lambda env: self.deltas.append(env.body))
+        self.bus.subscribe(t.frame_ack, FrameAck, lambda env: self.acks.append(env.body.frame_index))
+        self.frames = self.bus.publisher(t.tracks_frame, TrackedFrame)
+        self.features = self.bus.publisher(t.tracks_features, TrackFeatures)
+        self.end = self.bus.publisher(t.tracks_end, EndOfSequence)
+
+    def frame(self, make_frame, i: int) -> None:
+        fr = make_frame(i)
+        self.frames.put(TrackedFrame(frame=fr, track_ids=np.zeros(fr.depth.shape, np.int32), tracks=[]))
+        self.bus.drain()
+
+    def feature(self, i: int) -> None:
+        self.features.put(TrackFeatures(frame_index=i, tracks=[TrackFeature(track_id=0, dino=np.ones(4, np.float32))]))
+        self.bus.drain()
+
+    def send_end(self, last: int, features: int | None, published: int | None = None) -> None:
+        n = last + 1 if published is None else published
+        self.end.put(EndOfSequence(frames_published=n, frames_dropped=0, last_frame_index=last, track_features_published=features))
+        self.bus.drain()
+
+    def tick(self, dt: float) -> None:
+        self.session.tick(self.clock.advance(dt))
+        self.bus.drain()
+
+    def inputs(self) -> dict:
+        return {c.name: c for c in self.session.book.report().inputs}
+
+
+def test_frames_fused_duplicates_skipped_and_every_frame_acked(clock, make_frame):
+    rig = Rig(clock)
+    for i in (0, 1, 1, 0, 2, 3):
+        rig.frame(make_frame, i)
+    s = rig.session
+    assert rig.core.frames == 4 and s.duplicates == 2 and rig.acks == [0, 1, 1, 0, 2, 3]
+    assert [d.graph_seq for d in rig.deltas] == [1, 2]
+    report = s.book.report()
+    assert report.figures == {"frames": 4, "frames_in_map": 4, "duplicates": 2, "graph_seq": 2, "finished": False}
+    assert report.frames_done == 4 and report.published == {"frame_ack": 6, "graph_delta": 2}
+    assert rig.inputs()["tracks_frame"].processed == 6
+
+
+def test_the_map_finishes_only_once_everything_announced_is_in(clock, make_frame):
+    rig = Rig(clock)
+    rig.frame(make_frame, 0)
+    rig.feature(0)
+    rig.send_end(last=2, features=2)  # the tracker's end overtook frames 1, 2 and a feature message
+    assert not rig.session.finished.is_set()
+    assert rig.session.book.report().frames_expected == 3
+    rig.frame(make_frame, 1)
+    rig.frame(make_frame, 2)
+    assert not rig.session.finished.is_set()
+    rig.feature(2)
+    assert rig.session.finished.is_set() and rig.core.finished == 1
+    assert rig.deltas[-1].graph_seq == rig.core.graph.graph_seq
+    assert rig.session.book.state == "finished" and rig.session.book.report().figures["finished"] is True
+    rig.tick(1.0)
+    assert rig.core.finished == 1  # once
+
+
+def test_missing_messages_finish_the_map_after_the_grace(clock, make_frame):
+    rig = Rig(clock)
+    rig.frame(make_frame, 0)
+    rig.send_end(last=5, features=3, published=6)
+    rig.tick(END_GRACE_S - 1)
+    assert not rig.session.finished.is_set()
+    rig.tick(2)
+    assert rig.session.finished.is_set()
+    assert rig.session.delivery() == {
+        "frames_in_map": 1, "frames_announced": 6, "frames_lost": 5, "frames_duplicate": 0, "resumed_from": None,
+    }  # fmt: skip
+
+
+def test_a_failing_frame_is_counted_acked_and_not_fatal(clock, make_frame):
+    rig = Rig(clock, FakeFusion(bad=(1,)))
+    for i in range(3):
+        rig.frame(make_frame, i)
+    assert rig.acks == [0, 1, 2] and rig.core.frames == 2
+    c = rig.inputs()["tracks_frame"]
+    assert c.rejected == 1 and c.processed == 2 and rig.session.book.errors == 1
+
+
+def test_snapshot_queryable(clock, make_frame):
+    rig = Rig(clock)
+    for i in range(2):
+        rig.frame(make_frame, i)
+    snap = rig.bus.request(rig.topics.graph_snapshot, SnapshotRequest(), GraphSnapshot, timeout=1.0)
+    assert snap.graph_seq == 1 and snap.frame_index == 1
+    assert rig.inputs()["graph_snapshot"].processed == 1
+
+
+def test_periodic_snapshots_and_resume(clock, make_frame, tmp_path):
+    store = MapStore(tmp_path / "graph", write_dsg=False)
+    rig = Rig(clock, store=store, out=tmp_path)
+    rig.frame(make_frame, 0)
+    assert store.latest_name() is None
+    rig.tick(11.0)  # the snapshot interval passed with a frame not yet saved
+    assert store.latest_name() == "000001"
+    rig.tick(11.0)  # nothing new: no new snapshot
+    assert store.latest_name() == "000001"
+    rig.frame(make_frame, 1)  # more than the interval since the last snapshot: one now
+    assert store.latest_name() == "000002"
+    rig.frame(make_frame, 2)
+    assert store.latest_name() == "000002"
+    rig.session.close(save=True)  # what came after the last snapshot is kept at close
+    assert store.latest_name() == "000003"
+
+    again = Rig(clock, FakeFusion(), store=store, out=tmp_path, resume=True)
+    assert again.session.resumed_from is not None and again.core.last_frame_index == 2
+    assert again.session.deltas.seq == again.core.graph.graph_seq == 1  # deltas go on from the snapshot
+    for i in (2, 3):
+        again.frame(make_frame, i)
+    assert again.session.duplicates == 1 and again.core.frames == 4
