@@ -39,6 +39,7 @@ from shared.messages import (
     FrameAck,
     GraphDelta,
     GraphSnapshot,
+    InputCounters,
     KeyframeMasks,
     KeyframeRequest,
     MaskFeatures,
@@ -49,6 +50,7 @@ from shared.messages import (
     QueryRequest,
     RoomNode,
     SegmentNode,
+    ServiceStatus,
     SnapshotRequest,
     TrackedFrame,
     TrackFeature,
@@ -377,7 +379,23 @@ def query_replies(draw: st.DrawFn) -> QueryReply:
     )
 
 
+@st.composite
+def service_statuses(draw: st.DrawFn) -> ServiceStatus:
+    small = st.integers(0, 2**31)
+    rate = st.floats(0, 1e6, allow_nan=False)
+    inputs = draw(st.lists(st.builds(InputCounters, name=NONBLANK, received=small, processed=small, rejected=small,
+                                     dropped=small, rate_hz=rate, queue_depth=small), max_size=4))  # fmt: skip
+    return ServiceStatus(
+        service=draw(NONBLANK), pid=draw(small), state=draw(st.sampled_from(["starting", "running", "finished", "stopped"])),
+        uptime_s=draw(rate), inputs=inputs, published=draw(st.dictionaries(NONBLANK, small, max_size=3)),
+        rate_hz=draw(rate), latency_p50_ms=draw(st.none() | rate), latency_p99_ms=draw(st.none() | rate),
+        frames_done=draw(st.none() | small), frames_expected=draw(st.none() | small), errors=draw(small),
+        figures=draw(st.dictionaries(NONBLANK, st.none() | st.booleans() | small | TEXT, max_size=3)),
+    )  # fmt: skip
+
+
 STRATEGIES: dict[type[BaseModel], st.SearchStrategy] = {
+    ServiceStatus: service_statuses(),
     Frame: frames(),
     EndOfSequence: end_of_sequences(),
     FrameAck: st.builds(FrameAck, frame_index=NONNEG, service=st.text(min_size=1, max_size=32)),
