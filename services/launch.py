@@ -335,12 +335,14 @@ class Supervisor:
         running = [self.procs[n] for n in reversed(self.order) if self.procs[n].pid is not None]
         routers = [p for p in running if p.name == "router"]
         for p in [p for p in running if p.name != "router"] + routers:
+            if p.name == "router":
+                # Our own session goes while its router is still there: closing a client
+                # session whose router has gone has aborted the launcher at exit.
+                self._close_session()
             _kill(p.popen, signal.SIGTERM, self.launch.stop_timeout_s)
             if p.state not in ("finished", "failed"):
                 p.state = "stopped"
             self._event(f"{p.name} stopped")
-            if p.name == "router" and self.watcher is not None:
-                self._close_session()
         self._close_session()
 
     def report(self, name: str):

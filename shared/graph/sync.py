@@ -163,10 +163,12 @@ class ReplicaSync:
                     break
                 self.deltas += 1
                 mesh = mesh or d.mesh is not None
+            # What readers derive (the query index) is rebuilt before the replica says it is in
+            # sync, so nobody waiting on ``synced`` is answered from the old derivation.
+            self._changed(mesh)
             if ok:
                 self._synced.set()
                 log.info("graph replica in sync at version %d (%d segments)", self.replica.graph_seq, len(self.replica.segments))
-            self._changed(mesh)
             return ok
 
     def resync(self, now: float, fetch: Callable[[], GraphSnapshot]) -> bool | None:
