@@ -37,6 +37,8 @@ class FusionNode:
         self.out = Path(out)
         self.store = MapStore(self.out / "graph", robot_id=cfg.robot_id)
         core = FusionCore(cfg.fusion, device=cfg.tracker.device)
+        self.out.mkdir(parents=True, exist_ok=True)
+        save_resolved(cfg, self.out / "config.yaml")  # what built the map, e.g. for offline queries
         self.bus = ZenohBus(session, cfg.robot_id, cfg.transport.codec) if session is not None else ZenohBus.open(cfg.transport, cfg.robot_id)
         self.inbox = Inbox(256, name="fusion:worker")
         try:
@@ -45,8 +47,6 @@ class FusionNode:
             self.inbox.stop()
             self.bus.close()
             raise
-        self.out.mkdir(parents=True, exist_ok=True)
-        save_resolved(cfg, self.out / "config.yaml")  # what built the map, e.g. for offline queries
         self.core = core
         self.book = self.session.book
         self.finished = self.session.finished

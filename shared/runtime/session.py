@@ -5,8 +5,9 @@ subscriptions it declares on the :class:`~shared.runtime.bus.Bus` it is given, m
 through publishers of that bus, and :meth:`Session.tick` is called now and then for what
 depends on time alone (time-outs, periodic work). It never blocks waiting for a message: what
 has to wait is held in its state until the message arrives or ``tick`` gives up on it. The
-same session runs in a service's own process (``ZenohBus``, one thread per subscription) and
-in ``trackgraph map`` (``InProcessBus``, one thread).
+same session runs in a service's own process (``ZenohBus``: one thread per subscription, and an
+:class:`Inbox` worker for the inputs that must keep their order) and in ``trackgraph map``
+(``InProcessBus``, one thread).
 
 Every input and output is counted in the session's :class:`~shared.runtime.status.StatusBook`
 under its ``shared.topics.Topics`` attribute name (``frames``, ``keyframe_masks``, ...), the
