@@ -158,7 +158,7 @@ def report_summary(st: ServiceStatus) -> dict[str, Any]:
     return {
         "state": st.state, "rate_hz": st.rate_hz, "dropped": drops(st), "queue_depth": queue_depth(st),
         "frames_done": st.frames_done, "frames_expected": st.frames_expected,
-        "eta_s": None if eta is None else round(eta, 1), "errors": st.errors,
+        "eta_s": None if eta is None else round(eta, 1), "errors": st.errors, "stale_s": st.stale_s,
     }  # fmt: skip
 
 
@@ -184,7 +184,7 @@ def status_table(latest: dict[str, tuple[ServiceStatus, float]], *, title: str =
             name, f"[{colours.get(st.state, 'white')}]{st.state}[/]", str(st.pid), fmt_duration(st.uptime_s),
             cells["Hz"], cells["drops"], cells["queue"],
             "-" if st.latency_p50_ms is None else f"{st.latency_p50_ms:.1f}", "-" if st.latency_p99_ms is None else f"{st.latency_p99_ms:.1f}",
-            str(st.errors), cells["progress"], f"{age:.1f} s ago", style=style,
+            str(st.errors), cells["progress"], f"{age:.1f} s ago" + (f", busy {st.stale_s:.1f} s" if st.stale_s else ""), style=style,
         )  # fmt: skip
     return t
 

@@ -71,7 +71,8 @@ def serve(
     from shared.topics import Topics
 
     node = build_node(service, cfg, out=out, resume=resume)
-    reporter = StatusReporter(node.book, node.bus, Topics(cfg.robot_id).status(service))
+    heartbeat = cfg.transport if service in cfg.transport.status_heartbeat else None
+    reporter = StatusReporter(node.book, node.bus, Topics(cfg.robot_id).status(service), heartbeat=heartbeat)
     log.info("%s serving as robot %s", service, cfg.robot_id)
     try:
         while not stop.wait(1.0):

@@ -51,7 +51,8 @@ def run_source(
         bar = _progress_bar(progress, total=len(session.cursor.plan))
         if bar is not None:
             session.on_progress = lambda _stats: bar.update(1)
-        reporter = StatusReporter(session.book, bus, topics.status("source"))
+        heartbeat = cfg.transport if "source" in cfg.transport.status_heartbeat else None
+        reporter = StatusReporter(session.book, bus, topics.status("source"), heartbeat=heartbeat)
         if cfg.source.mode == "lossless" and not _wait_for(session.frames_out.has_subscribers, wait_subscribers_s, stop):
             raise TransportError(f"{topics.frames}: no subscriber after {wait_subscribers_s:.1f} s; lossless replay would lose frames")
         log.info("replaying %s (%d frames, %s mode) on %s", sequence, len(reader), cfg.source.mode, topics.frames)

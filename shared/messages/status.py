@@ -63,3 +63,7 @@ class ServiceStatus(Message):
     figures: dict[str, int | float | str | bool | None | dict | list] = Field(default_factory=dict)
     """The service's own figures, e.g. the tracker's keyframe ledger under ``keyframes``
     (JSON-compatible values only)."""
+    stale_s: float = Field(0.0, ge=0)
+    """0 when the service made this report just now. Above 0, its heartbeat process sent the
+    service's last report again because the service has not had its interpreter for this many
+    seconds (a long native call): the process is alive, and its figures are this old."""

@@ -5,43 +5,12 @@ session itself, over the in-process bus."""
 from __future__ import annotations
 
 import logging
-import threading
-import time
 from collections.abc import Callable
 from typing import Any
 
+from shared.runtime.session import Ticker
+
 log = logging.getLogger(__name__)
-
-
-class Ticker:
-    """Calls ``tick(time.monotonic())`` at once and then every ``period_s`` until
-    :meth:`stop`; a failed tick is logged, reported to ``on_error`` and retried next time."""
-
-    def __init__(self, tick: Callable[[float], object], period_s: float, *, name: str,
-                 on_error: Callable[[], None] | None = None) -> None:  # fmt: skip
-        if period_s <= 0:
-            raise ValueError("period_s must be positive")
-        self._tick, self.period_s, self._on_error = tick, period_s, on_error
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while True:
-            try:
-                self._tick(time.monotonic())
-            except Exception:  # noqa: BLE001 - a failed tick is retried on the next one
-                if self._on_error is not None:
-                    self._on_error()
-                log.exception("%s: tick failed", self._thread.name)
-            if self._stop.wait(self.period_s):
-                return
-
-    def stop(self, timeout: float | None = None) -> None:
-        """Stop ticking; waits up to ``timeout`` for a tick in progress (a request may be in flight)."""
-        self._stop.set()
-        if self._thread is not threading.current_thread():
-            self._thread.join(timeout)
 
 
 class SessionNode:

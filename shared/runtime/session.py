@@ -308,23 +308,32 @@ class Session:
 
 
 class Ticker:
-    """Calls ``tick(clock())`` every ``period_s`` on a thread of its own until :meth:`stop`
-    (a node's time-outs; in one process the caller ticks its sessions itself)."""
+    """Calls ``tick(clock())`` at once and then every ``period_s`` on a thread of its own until
+    :meth:`stop` (a node's time-outs; in one process the caller ticks its sessions itself). A
+    failed tick is logged, reported to ``on_error`` and tried again on the next one."""
 
-    def __init__(self, tick: Callable[[float], Any], period_s: float, *, name: str, clock: Callable[[], float] = time.monotonic) -> None:
-        self._tick, self.period_s, self._clock = tick, period_s, clock
+    def __init__(self, tick: Callable[[float], Any], period_s: float, *, name: str, clock: Callable[[], float] = time.monotonic,
+                 on_error: Callable[[], None] | None = None) -> None:  # fmt: skip
+        if period_s <= 0:
+            raise ValueError("period_s must be positive")
+        self._tick, self.period_s, self._clock, self._on_error = tick, period_s, clock, on_error
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
-        while not self._stop.wait(self.period_s):
+        while True:
             try:
                 self._tick(self._clock())
             except Exception:  # noqa: BLE001 - a failed tick is the session's to report; keep ticking
+                if self._on_error is not None:
+                    self._on_error()
                 log.exception("%s failed", self._thread.name)
+            if self._stop.wait(self.period_s):
+                return
 
-    def stop(self) -> None:
+    def stop(self, timeout: float | None = 30.0) -> None:
+        """Stop ticking; waits up to ``timeout`` for a tick in progress (a request may be in flight)."""
         self._stop.set()
         if self._thread is not threading.current_thread():
-            self._thread.join(timeout=30)
+            self._thread.join(timeout)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import collections
 import json
+import logging
 import os
 import threading
 import time
@@ -20,6 +21,8 @@ import numpy as np
 
 from shared.io import atomic_write_text
 from shared.messages.status import InputCounters, ServiceState, ServiceStatus
+
+log = logging.getLogger(__name__)
 
 RATE_WINDOW_S = 5.0
 """Rates are counted over the last this many seconds: long enough to smooth a keyframe's
@@ -205,11 +208,24 @@ reports go out twice as often as promised."""
 
 class StatusReporter:
     """Publishes a book's report on ``key`` every ``period_s`` from a thread of its own, and a
-    last one at :meth:`stop` (also written to ``status_file`` when given)."""
+    last one at :meth:`stop` (also written to ``status_file`` when given).
 
-    def __init__(self, book: StatusBook, bus: Any, key: str, *, period_s: float = REPORT_PERIOD_S) -> None:
+    With ``heartbeat`` (the service's transport settings) the reports go out through a
+    heartbeat process of the service's own (:mod:`shared.runtime.heartbeat`), which keeps
+    them coming while a native call holds this process's interpreter. Until that process is
+    up, and if it goes, this thread publishes them itself."""
+
+    def __init__(self, book: StatusBook, bus: Any, key: str, *, period_s: float = REPORT_PERIOD_S, heartbeat: Any = None) -> None:
         self.book, self.key, self.period_s = book, key, period_s
         self._pub = bus.publisher(key, ServiceStatus)
+        self.sidecar = None
+        if heartbeat is not None:
+            from shared.runtime.heartbeat import StatusSidecar
+
+            try:
+                self.sidecar = StatusSidecar(heartbeat, bus.robot_id, key, period_s=period_s)
+            except OSError as exc:
+                log.warning("%s: no status heartbeat (%s); reports go out from the service", book.service, exc)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"status:{book.service}", daemon=True)
         self._thread.start()
@@ -218,15 +234,17 @@ class StatusReporter:
         while not self._stop.wait(self.period_s):
             self.publish()
 
+    def _put(self, report: ServiceStatus) -> None:
+        if self.sidecar is None or not self.sidecar.send(report):
+            self._pub.put(report)
+
     def publish(self, state: ServiceState | None = None) -> ServiceStatus | None:
         try:
             report = self.book.report(state)
-            self._pub.put(report)
+            self._put(report)
             return report
         except Exception:  # noqa: BLE001 - a status report must never take the service down
-            import logging
-
-            logging.getLogger(__name__).warning("%s: status report not sent", self.book.service, exc_info=True)
+            log.warning("%s: status report not sent", self.book.service, exc_info=True)
             return None
 
     def stop(self, status_file: Path | None = None) -> ServiceStatus:
@@ -234,10 +252,12 @@ class StatusReporter:
         self._stop.set()
         self._thread.join(timeout=5)
         report = self.book.report("stopped")
-        try:
-            self._pub.put(report)
-        except Exception:  # noqa: BLE001 - the session may be going; the file still gets it
-            pass
+        took = self.sidecar is not None and self.sidecar.close(report)
+        if not took:
+            try:
+                self._pub.put(report)
+            except Exception:  # noqa: BLE001 - the session may be going; the file still gets it
+                pass
         if status_file is not None:
             write_status(status_file, report)
         self._pub.close()

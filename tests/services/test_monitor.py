@@ -70,13 +70,16 @@ def test_status_table_and_json_from_reports():
                           inputs=[InputCounters(name="tracks_frame", received=41, dropped=1, queue_depth=1)]), 0.4),  # fmt: skip
         "source": (status("source", frames_done=50, frames_expected=100, rate_hz=2.5, figures={"dropped": 0}), 0.2),
         "query": (status("query", state="stopped"), 9.0),
+        "tracker": (status("tracker", frames_done=45, stale_s=1.24), 0.1),
     }
     text = render(status_table(latest))
-    lines = [ln for ln in text.splitlines() if ln.strip().startswith(("│ source", "│ fusion", "│ query", "┃ service"))]
-    assert [ln.split()[1] for ln in lines] == ["service", "source", "fusion", "query"]  # pipeline order
+    lines = [ln for ln in text.splitlines() if ln.strip().startswith(("│ source", "│ tracker", "│ fusion", "│ query", "┃ service"))]
+    assert [ln.split()[1] for ln in lines] == ["service", "source", "tracker", "fusion", "query"]  # pipeline order
     assert "50/100 (50%), ETA 20 s" in text and "40/100 (40%), ETA 30 s" in text and "12.5" in text and "9.0 s ago" in text
     out = status_json(latest, "robot0")
-    assert list(out["services"]) == ["source", "fusion", "query"] and out["robot"] == "robot0"
+    assert "0.1 s ago, busy 1.2 s" in text  # a heartbeat's resent report says how old it is
+    assert list(out["services"]) == ["source", "tracker", "fusion", "query"] and out["robot"] == "robot0"
+    assert out["services"]["tracker"]["summary"]["stale_s"] == 1.24 and out["services"]["fusion"]["summary"]["stale_s"] == 0
     assert out["services"]["fusion"]["summary"]["dropped"] == 1 and out["services"]["fusion"]["inputs"][0]["name"] == "tracks_frame"
     assert out["services"]["query"]["age_s"] == 9.0
     json.dumps(out)
