@@ -30,13 +30,16 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from shared.config.base import ConfigError, deep_merge, save_resolved, validate
 from shared.config.launch import LaunchConfig, RestartPolicy, ServiceSpec, load_launch
 from shared.config.root import TrackGraphConfig
 from shared.procfs import status_mb
 from shared.runtime.status import read_status, status_path
+
+if TYPE_CHECKING:
+    from shared.messages.status import ServiceStatus
 
 log = logging.getLogger(__name__)
 
@@ -419,6 +422,11 @@ class _StatusView:
 
             self.live = Live(self.table(), console=self.console, refresh_per_second=4, transient=False)
             self.live.start()
+            # Log lines written past the live table leave pieces of it behind on the screen;
+            # through Live's own stderr proxy they print above the table instead.
+            self._moved = [h for h in logging.getLogger().handlers if type(h) is logging.StreamHandler and h.stream is sys.__stderr__]
+            for h in self._moved:
+                h.setStream(sys.stderr)
 
     def table(self):
         return launch_table(self.sup)
@@ -431,6 +439,8 @@ class _StatusView:
         if self.live is not None:
             self.live.update(self.table())
             self.live.stop()
+            for h in self._moved:
+                h.setStream(sys.__stderr__)
 
 
 LAUNCH_COLUMNS = ("service", "state", "pid", "up", "restarts", "Hz", "drops", "queue", "progress", "log")
@@ -441,23 +451,29 @@ def launch_table(sup: Supervisor, now: float | None = None):
     reports say (rate, drops, queue depth, frames done of total with an ETA)."""
     from rich.table import Table
 
-    from services.monitor import STALE_S, report_cells
+    from services.monitor import STALE_S, report_cells, with_source_total
 
     now = time.monotonic() if now is None else now
     t = Table(title=f"trackgraph launch {sup.plan.source}", header_style="bold", caption="\n".join(sup._events))
     for col in LAUNCH_COLUMNS:
         t.add_column(col, justify="right" if col in ("pid", "restarts", "Hz", "drops", "queue") else "left")
     colours = {"alive": "green", "finished": "cyan", "failed": "red", "unresponsive": "yellow", "backoff": "yellow"}
+
+    def latest(name: str) -> tuple[ServiceStatus, float] | None:
+        p = sup.procs[name]
+        if name == "router":
+            return None
+        if p.pid is not None:
+            return sup.report(name)
+        st = sup.final_report(name)  # it has exited: what it reported last
+        return None if st is None else (st, 0.0)
+
+    source = latest("source") if "source" in sup.procs else None
     for name in sup.order:
         p = sup.procs[name]
         up = f"{now - p.started_at:.0f} s" if p.pid is not None else "-"
-        got = None
-        if name != "router" and p.pid is not None:
-            got = sup.report(name)
-        elif name != "router":
-            st = sup.final_report(name)  # it has exited: what it reported last
-            got = None if st is None else (st, 0.0)
-        cells = report_cells(got[0] if got is not None else None)
+        got = latest(name)
+        cells = report_cells(None if got is None else with_source_total(got[0], None if source is None else source[0]))
         stale = got is not None and got[1] > STALE_S
         figures = [f"[dim]{cells[c]}[/]" if stale else cells[c] for c in ("Hz", "drops", "queue", "progress")]
         t.add_row(name, f"[{colours.get(p.state, 'white')}]{p.state}[/]", str(p.pid or "-"), up, str(len(p.restarts)), *figures, str(p.log_path))

@@ -145,6 +145,15 @@ def progress_text(st: ServiceStatus) -> str:
     return text + (f", ETA {fmt_duration(eta)}" if eta is not None else "")
 
 
+def with_source_total(st: ServiceStatus, source: ServiceStatus | None) -> ServiceStatus:
+    """A stage downstream of the source (tracker, fusion) learns how many frames it gets in
+    all only at the end of the sequence; until then its total is the frames the source will
+    send, less those the source has dropped."""
+    if st.frames_done is None or st.frames_expected is not None or source is None or source is st or not source.frames_expected:
+        return st
+    return st.model_copy(update={"frames_expected": max(source.frames_expected - drops(source), 0)})
+
+
 def report_cells(st: ServiceStatus | None) -> dict[str, str]:
     """The table's report columns for one service; dashes before its first report."""
     if st is None:
@@ -176,9 +185,10 @@ def status_table(latest: dict[str, tuple[ServiceStatus, float]], *, title: str =
     for col in ("service", "state", "pid", "up", "Hz", "drops", "queue", "p50 ms", "p99 ms", "errors", "progress", "report"):
         t.add_column(col, justify="right" if col in ("pid", "Hz", "drops", "queue", "p50 ms", "p99 ms", "errors") else "left")
     colours = {"running": "green", "finished": "cyan", "starting": "yellow", "stopped": "white"}
+    source = latest["source"][0] if "source" in latest else None
     for name in ordered(set(latest)):
         st, age = latest[name]
-        cells = report_cells(st)
+        cells = report_cells(with_source_total(st, source))
         style = "dim" if age > STALE_S else None
         t.add_row(
             name, f"[{colours.get(st.state, 'white')}]{st.state}[/]", str(st.pid), fmt_duration(st.uptime_s),

@@ -18,6 +18,7 @@ from services.monitor import (
     progress_text,
     report_cells,
     report_summary,
+    with_source_total,
     status_json,
     status_table,
 )
@@ -179,3 +180,15 @@ def test_trackgraph_status_fails_with_one_line_when_nothing_answers(capsys):
         session.close()
     err = capsys.readouterr().err.strip()
     assert "no service of robot 'robot7' reported on trackgraph/robot7/status/* within 1 s" in err and len(err.splitlines()) == 1
+
+
+def test_a_downstream_stage_shows_its_progress_against_the_frames_the_source_sends():
+    source = status("source", frames_done=80, frames_expected=120, figures={"dropped": 20})
+    tracker = status("tracker", frames_done=50, uptime_s=10.0)
+    assert report_cells(tracker)["progress"] == "50 frames"
+    shown = with_source_total(tracker, source)
+    assert shown.frames_expected == 100 and report_cells(shown)["progress"] == "50/100 (50%), ETA 10 s"
+    own = status("fusion", frames_done=50, frames_expected=60)
+    assert with_source_total(own, source) is own  # its own total, once it knows it, wins
+    assert with_source_total(tracker, None) is tracker and with_source_total(source, source) is source
+    assert with_source_total(status("query"), source).frames_expected is None  # handles no frames
