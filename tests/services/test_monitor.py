@@ -18,9 +18,9 @@ from services.monitor import (
     progress_text,
     report_cells,
     report_summary,
-    with_source_total,
     status_json,
     status_table,
+    with_source_total,
 )
 from shared.messages.status import InputCounters, ServiceStatus
 from shared.runtime.bus import InProcessBus
