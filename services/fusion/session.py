@@ -20,14 +20,33 @@ from collections.abc import Callable
 from pathlib import Path
 
 from shared.config.root import TrackGraphConfig
+from shared.config.transport import CodecConfig
 from shared.graph.store import MapStore, StoreError
 from shared.messages.frames import EndOfSequence, FrameAck, TrackedFrame
-from shared.messages.graph import GraphDelta, GraphSnapshot, SnapshotRequest
+from shared.messages.graph import GraphDelta, GraphSnapshot, MeshChunk, SnapshotRequest
 from shared.messages.keyframes import TrackFeatures
 from shared.runtime.bus import Bus
 from shared.runtime.session import LATER, Inbox, Session
 
 log = logging.getLogger(__name__)
+
+
+def mesh_over_limits(mesh: MeshChunk, codec: CodecConfig) -> str | None:
+    """Why ``mesh`` could not travel under ``codec``'s decode limits (every array within
+    ``max_array_bytes``, all of them within the total and the payload limit), or None. A reply
+    over them would be refused by every receiver with the same limits, after fusion spent the
+    time to encode and send it: better a graph without the mesh and the reason."""
+    arrays = {"vertices": mesh.vertices, "colors": mesh.colors, "faces": mesh.faces, "segment_ids": mesh.segment_ids}
+    for name, arr in arrays.items():
+        if arr.nbytes > codec.max_array_bytes:
+            return (f"the whole map's mesh has {len(mesh.vertices)} vertices; its {name} are {arr.nbytes} bytes, "
+                    f"over transport.codec.max_array_bytes {codec.max_array_bytes} (ask with_mesh for the active window)")  # fmt: skip
+    total = sum(a.nbytes for a in arrays.values())
+    limit = min(codec.total_array_limit, codec.max_payload_bytes)
+    if total > limit:
+        return (f"the whole map's mesh is {total} bytes, over the codec's limit of {limit} bytes for one reply "
+                f"(transport.codec.max_total_array_bytes, max_payload_bytes; ask with_mesh for the active window)")  # fmt: skip
+    return None
 
 END_GRACE_S = 15.0
 """After ``tracks/end``, how long fusion waits for announced messages still on their way."""
@@ -129,7 +148,13 @@ class FusionSession(Session):
     def _on_snapshot(self, req: SnapshotRequest) -> GraphSnapshot:
         # under the lock: a snapshot never sees a half-applied frame
         with self.lock:
-            return self.core.snapshot(with_mesh=req.with_mesh)
+            snap = self.core.snapshot(with_mesh=req.with_mesh or req.whole_map, whole_map=req.whole_map)
+        if req.whole_map and snap.mesh is not None:
+            why = mesh_over_limits(snap.mesh, self.cfg.transport.codec)
+            if why is not None:
+                log.warning("graph/snapshot: whole-map mesh left out: %s", why)
+                return snap.model_copy(update={"mesh": None, "error": f"SnapshotRequest.whole_map: {why}"})
+        return snap
 
     # ---------------------------------------------------------------- end, saves
 

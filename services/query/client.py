@@ -5,6 +5,8 @@
             print(hit.segment, hit.score, hit.centroid)
 
 Any number of clients may query one service at once; each call is one Zenoh request.
+:meth:`QueryClient.snapshot` asks fusion for the graph itself (``graph/snapshot``), with the
+whole map's mesh if wanted.
 """
 
 from __future__ import annotations
@@ -14,9 +16,15 @@ from typing import Annotated, Literal
 import numpy as np
 
 from shared.config.transport import TransportConfig
+from shared.messages.graph import GraphSnapshot, SnapshotRequest
 from shared.messages.rpc import QueryHit, QueryReply, QueryRequest
 from shared.topics import Topics
 from shared.transport import TransportError, open_session, request
+
+
+WHOLE_MAP_TIMEOUT_S = 30.0
+"""Least time-out of a whole-map snapshot: marching cubes over a large map's archive takes
+seconds, a bare graph milliseconds."""
 
 
 class QueryRefused(TransportError):
@@ -73,6 +81,22 @@ class QueryClient:
         ).body  # fmt: skip
         self.last_graph_seq = reply.graph_seq
         return reply
+
+    def snapshot(self, *, with_mesh: bool = False, whole_map: bool = False, timeout_s: float | None = None) -> GraphSnapshot:
+        """fusion's graph now: with ``with_mesh`` the active window's mesh, with ``whole_map``
+        the whole map's, the same as the saved map's (fusion builds it from the archive while
+        frames wait: seconds on a large map, so the default time-out is at least
+        ``WHOLE_MAP_TIMEOUT_S``). Raises QueryRefused when fusion declines the mesh (its reason),
+        TransportError on a time-out or an error reply."""
+        timeout = timeout_s if timeout_s is not None else max(self.timeout_s, WHOLE_MAP_TIMEOUT_S if whole_map else 0.0)
+        self._seq += 1
+        snap = request(
+            self.session, self.topics.graph_snapshot, SnapshotRequest(with_mesh=with_mesh, whole_map=whole_map), GraphSnapshot,
+            robot_id=self.robot_id, timeout=timeout, codec=self.transport.codec, seq=self._seq,
+        ).body  # fmt: skip
+        if snap.error is not None:
+            raise QueryRefused(f"snapshot refused: {snap.error}")
+        return snap
 
     def close(self) -> None:
         if self._own_session:

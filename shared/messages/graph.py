@@ -100,7 +100,8 @@ class Edge(Message):
 
 
 class MeshChunk(Message):
-    """Mesh of the active window with each vertex's winning segment."""
+    """A mesh with each vertex's winning segment: the active window's, or with
+    ``SnapshotRequest.whole_map`` the whole map's."""
 
     vertices: Annotated[Vertices, METRES]
     """(V, 3) float32 positions (world)."""
@@ -167,7 +168,10 @@ class GraphSnapshot(Message):
     edges: list[Edge] = Field(default_factory=list)
     """All edges."""
     mesh: MeshChunk | None = None
-    """The mesh, if asked for."""
+    """The mesh, if asked for: the active window's, or with ``whole_map`` the whole map's."""
+    error: str | None = None
+    """Why the mesh asked for is not in this reply (the graph still is), e.g. a whole-map mesh
+    over the codec's array limits; None when the reply is everything asked for."""
 
 
 @register
@@ -175,4 +179,8 @@ class SnapshotRequest(Message):
     """Request of the ``graph/snapshot`` queryable."""
 
     with_mesh: bool = False
-    """Include the mesh (large)."""
+    """Include the active window's mesh (large)."""
+    whole_map: bool = False
+    """Include the whole map's mesh instead, the active window's and the archived blocks', as
+    the saved map has it (implies ``with_mesh``). Fusion runs marching cubes over the archive
+    for it while frames wait, so ask for it rarely (a viewer joining, an export), not per delta."""

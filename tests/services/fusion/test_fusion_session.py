@@ -10,7 +10,7 @@ from services.fusion.session import END_GRACE_S, FusionSession
 from shared.config import TrackGraphConfig
 from shared.graph.store import MapStore
 from shared.messages.frames import EndOfSequence, FrameAck, TrackedFrame
-from shared.messages.graph import GraphDelta, GraphSnapshot, SnapshotRequest
+from shared.messages.graph import GraphDelta, GraphSnapshot, MeshChunk, SnapshotRequest
 from shared.messages.keyframes import TrackFeature, TrackFeatures
 from shared.runtime.bus import InProcessBus
 from shared.topics import Topics
@@ -55,7 +55,12 @@ class FakeFusion:
         return self._delta()
 
     def snapshot(self, with_mesh: bool = False, whole_map: bool = False) -> GraphSnapshot:
-        return GraphSnapshot(graph_seq=self.graph.graph_seq, frame_index=self.last_frame_index)
+        self.asked = (with_mesh, whole_map)
+        # the whole map is the active window's 2 vertices and 8 archived ones
+        v = 10 if whole_map else 2 if with_mesh else 0
+        mesh = MeshChunk(vertices=np.zeros((v, 3), np.float32), colors=np.zeros((v, 3), np.uint8), faces=np.zeros((0, 3), np.int32),
+                         segment_ids=np.full(v, -1, np.int32)) if v else None  # fmt: skip
+        return GraphSnapshot(graph_seq=self.graph.graph_seq, frame_index=self.last_frame_index, mesh=mesh)
 
     def state_dict(self) -> dict:
         return {"frames": np.array(self.frames), "last": np.array(self.last_frame_index)}
@@ -66,11 +71,11 @@ class FakeFusion:
 
 
 class Rig:
-    def __init__(self, clock, core: FakeFusion | None = None, **kw) -> None:
+    def __init__(self, clock, core: FakeFusion | None = None, config: dict | None = None, **kw) -> None:
         self.clock = clock
         self.bus = InProcessBus("robot0", clock=clock)
         self.core = core or FakeFusion()
-        cfg = TrackGraphConfig.model_validate({"fusion": {"snapshot_interval_s": 10.0}})
+        cfg = TrackGraphConfig.model_validate({"fusion": {"snapshot_interval_s": 10.0}, **(config or {})})
         self.session = FusionSession(self.bus, cfg, self.core, clock=clock, **kw)
         t = self.topics = Topics("robot0")
         self.deltas: list[GraphDelta] = []
@@ -163,6 +168,23 @@ def test_snapshot_queryable(clock, make_frame):
     snap = rig.bus.request(rig.topics.graph_snapshot, SnapshotRequest(), GraphSnapshot, timeout=1.0)
     assert snap.graph_seq == 1 and snap.frame_index == 1
     assert rig.inputs()["graph_snapshot"].processed == 1
+
+
+def test_whole_map_snapshot_or_the_reason_it_cannot_travel(clock, make_frame):
+    rig = Rig(clock)
+    rig.frame(make_frame, 0)
+    ask = lambda **kw: rig.bus.request(rig.topics.graph_snapshot, SnapshotRequest(**kw), GraphSnapshot, timeout=1.0)  # noqa: E731
+    assert ask(with_mesh=True).mesh.vertices.shape == (2, 3) and rig.core.asked == (True, False)
+    snap = ask(whole_map=True)  # whole_map implies the mesh
+    assert snap.mesh.vertices.shape == (10, 3) and snap.error is None and rig.core.asked == (True, True)
+    # 10 vertices are 120 bytes: over a 100-byte array limit the graph comes without the mesh, and why
+    small = Rig(clock, config={"transport": {"codec": {"max_array_bytes": 100}}})
+    small.frame(make_frame, 0)
+    snap = small.bus.request(small.topics.graph_snapshot, SnapshotRequest(whole_map=True), GraphSnapshot, timeout=1.0)
+    assert snap.mesh is None and snap.frame_index == 0
+    assert snap.error.startswith("SnapshotRequest.whole_map: ") and "vertices are 120 bytes, over transport.codec.max_array_bytes 100" in snap.error
+    # the active window's mesh is what it always was
+    assert small.bus.request(small.topics.graph_snapshot, SnapshotRequest(with_mesh=True), GraphSnapshot, timeout=1.0).error is None
 
 
 def test_periodic_snapshots_and_resume(clock, make_frame, tmp_path):

@@ -49,11 +49,15 @@ class FakeFusion:
         self.graph = GraphReplica()
         self.pub = TypedPublisher(session, topics.graph_delta, GraphDelta, robot_id=robot)
         self.snapshots = 0
+        self.requests: list[SnapshotRequest] = []
+        self.refuse: str | None = None
         self.q = TypedQueryable(session, topics.graph_snapshot, SnapshotRequest, GraphSnapshot, self._snap, robot_id=robot)
 
     def _snap(self, env) -> GraphSnapshot:
         self.snapshots += 1
-        return self.graph.snapshot()
+        self.requests.append(env.body)
+        snap = self.graph.snapshot()
+        return snap if self.refuse is None else snap.model_copy(update={"error": self.refuse})
 
     def add(self, segment: SegmentNode, publish: bool = True) -> None:
         d = GraphDelta(graph_seq=self.graph.graph_seq + 1, frame_index=self.graph.graph_seq, segments=[segment])
@@ -182,3 +186,15 @@ def test_many_clients_at_once_and_a_client_vanishing_mid_query(system):
         assert stats["query_link"]["handler_errors"] == 0 and stats["errors"] == 0
     finally:
         node.close()
+
+
+def test_client_asks_fusion_for_the_whole_map_and_hears_why_not(system):
+    cfg, fusion = system
+    fusion.add(seg(1, "chair"), publish=False)
+    with QueryClient(cfg.transport, robot_id=cfg.robot_id) as client:
+        snap = client.snapshot(whole_map=True)
+        assert [s.id for s in snap.segments] == [1] and snap.error is None
+        assert fusion.requests[-1].whole_map and not fusion.requests[-1].with_mesh
+        fusion.refuse = "SnapshotRequest.whole_map: the whole map's mesh is 9 bytes, over the codec's limit"
+        with pytest.raises(QueryRefused, match="whole_map: the whole map's mesh is 9 bytes"):
+            client.snapshot(whole_map=True)
