@@ -21,7 +21,6 @@ from shared.messages.rpc import QueryHit, QueryReply, QueryRequest
 from shared.topics import Topics
 from shared.transport import TransportError, open_session, request
 
-
 WHOLE_MAP_TIMEOUT_S = 30.0
 """Least time-out of a whole-map snapshot: marching cubes over a large map's archive takes
 seconds, a bare graph milliseconds."""
