@@ -11,8 +11,9 @@ What it measures, for a Replica-sized frame (rgb uint8 (680, 1200, 3), depth uin
 synthetic but scene-like content (a ray-cast room with furniture, shading, texture and mild
 sensor noise; fixed seed, so JPEG and PNG sizes are realistic):
 
-* four cases: codec ``raw`` (raw rgb and depth) and ``compressed`` (JPEG quality 90 rgb,
-  PNG level 1 depth), each with Zenoh shared memory off and on;
+* six cases: codec ``raw`` (raw rgb and depth), ``compressed`` (JPEG quality 90 rgb,
+  ``zstd2d`` level 1 depth) and ``compressed-png`` (JPEG 90, PNG level 1 depth: the
+  compressed codec before zstd2d), each with Zenoh shared memory off and on;
 * **latency**: N frames sent one at a time. The sender takes ``time.monotonic_ns()`` (one
   clock for every process on Linux) just before ``TypedPublisher.put`` and carries it in the
   envelope stamp; the receiver process reads the clock again right after
@@ -100,7 +101,9 @@ class Case:
 
 CODECS = {
     "raw": CodecConfig(rgb="raw", depth="raw"),
-    "compressed": CodecConfig(rgb="jpeg", jpeg_quality=90, depth="png", png_level=1),
+    "compressed": CodecConfig(rgb="jpeg", jpeg_quality=90, depth="zstd", zstd_level=1),
+    # The compressed codec before zstd2d depth, for comparison (and old configs still work).
+    "compressed-png": CodecConfig(rgb="jpeg", jpeg_quality=90, depth="png", png_level=1),
 }
 
 
@@ -501,7 +504,7 @@ def run_case(case: Case, frame: Frame, n_latency: int, n_throughput: int, warmup
     result: dict[str, Any] = {
         "case": case.name,
         "shared_memory": case.shared_memory,
-        "codec": case.codec.model_dump(include={"rgb", "jpeg_quality", "depth", "png_level"}),
+        "codec": case.codec.model_dump(include={"rgb", "jpeg_quality", "depth", "png_level", "zstd_level"}),
     }
     result.update(_codec_timing(frame, case.codec, repeats=max(3, min(20, n_latency // 10))))
 

@@ -7,7 +7,7 @@ An envelope on the wire is a msgpack map::
 
 and each numpy array inside the body is a map with the reserved key ``"__nd__"``::
 
-    {"__nd__": "raw" | "zlib" | "jpeg" | "png" | "bits" | "rle",
+    {"__nd__": "raw" | "zlib" | "jpeg" | "png" | "zstd2d" | "bits" | "rle",
      "dtype": "uint8", "shape": [480, 640, 3], "data": b"..."}
 
 Decoding never trusts a declared size: the dtype must be whitelisted, the shape's byte count
@@ -24,7 +24,7 @@ import functools
 import io
 import math
 import zlib
-from typing import Any, TypeVar
+from typing import Annotated, Any, TypeVar
 
 import msgpack
 import numpy as np
@@ -88,6 +88,8 @@ def _encode_array(arr: np.ndarray, spec: ArraySpec | None, cfg: CodecConfig) -> 
         buf = io.BytesIO()
         Image.fromarray(arr).save(buf, format="PNG", compress_level=cfg.png_level)
         return {ND: "png", **head, "data": buf.getvalue()}
+    if kind == "depth" and cfg.depth == "zstd" and arr.dtype == np.uint16 and arr.ndim == 2 and arr.size:
+        return {ND: "zstd2d", **head, "data": _zstd2d_encode(arr, cfg.zstd_level)}
     if kind == "mask" and arr.dtype == np.bool_:
         if cfg.masks == "rle":
             return {ND: "rle", **head, "data": _rle_encode(arr.ravel()).tobytes()}
@@ -95,6 +97,45 @@ def _encode_array(arr: np.ndarray, spec: ArraySpec | None, cfg: CodecConfig) -> 
     if kind == "label" and cfg.labels == "zlib":
         return {ND: "zlib", **head, "data": zlib.compress(arr.tobytes(), 1)}
     return {ND: "raw", **head, "data": arr.tobytes()}
+
+
+def _zstd2d_encode(depth: Annotated[np.ndarray, "(H, W) uint16"], level: int) -> bytes:
+    """Lossless 16-bit depth (``zstd2d``): the residual of the gradient predictor
+    (left + up - up-left, mod 2^16; the first row and column predict from their one
+    neighbour), zigzag-mapped so small errors of either sign have a zero high byte, the low
+    bytes and then the high bytes, compressed by zstd. 1200x680 sensor-like depth: 3.7x in
+    2.6 ms, where 16-bit PNG gives 2.9x in 33 ms (benchmarks/RESULTS.md)."""
+    import zstandard
+
+    x = depth.astype(np.uint16, copy=False)
+    r = x.copy()
+    r[1:, :] -= x[:-1, :]
+    r[:, 1:] -= x[:, :-1]
+    r[1:, 1:] += x[:-1, :-1]
+    s = r.view(np.int16)
+    z = (s.astype(np.int32) << 1) ^ (s.astype(np.int32) >> 15)  # zigzag: 0, -1, 1, -2, ... -> 0, 1, 2, 3, ...
+    planes = np.ascontiguousarray(z.astype(np.uint16).view(np.uint8).reshape(-1, 2).T)
+    return zstandard.ZstdCompressor(level=level).compress(planes.tobytes())
+
+
+def _zstd2d_decode(data: bytes, dtype: np.dtype, shape: tuple[int, ...]) -> np.ndarray:
+    import zstandard
+
+    if dtype != np.uint16 or len(shape) != 2:
+        raise CodecError(f"zstd2d must declare uint16 (H, W), got {dtype} {shape}")
+    nbytes = 2 * math.prod(shape)
+    try:
+        # A stream reader bounds what is inflated whatever size the frame header claims.
+        with zstandard.ZstdDecompressor().stream_reader(io.BytesIO(data)) as reader:
+            raw = reader.read(nbytes + 1)
+    except zstandard.ZstdError as exc:
+        raise CodecError(f"zstd2d: corrupt stream ({exc})") from None
+    if len(raw) != nbytes:
+        raise CodecError(f"zstd2d: stream inflates to {len(raw)}{'+' if len(raw) > nbytes else ''} bytes, expected {nbytes}")
+    z = np.frombuffer(raw, np.uint8).reshape(2, -1).T.copy().view(np.uint16).reshape(shape)
+    r = (z >> 1) ^ (-(z & 1)).astype(np.uint16)  # zigzag back, mod 2^16
+    # The residual is x's mixed second difference, so x is its double prefix sum (mod 2^16).
+    return np.cumsum(np.cumsum(r, axis=0, dtype=np.uint16), axis=1, dtype=np.uint16)
 
 
 def _decode_image(data: bytes, fmt: str, dtype: np.dtype, shape: tuple[int, ...], cfg: CodecConfig) -> np.ndarray:
@@ -173,6 +214,8 @@ def _decode_array(obj: dict, cfg: CodecConfig) -> np.ndarray:
         if dtype != np.bool_ or len(data) % 4:
             raise CodecError("rle encoding is for bool arrays with uint32 runs")
         return _rle_decode(np.frombuffer(data, dtype="<u4"), count).reshape(shp)
+    if enc == "zstd2d":
+        return _zstd2d_decode(data, dtype, shp)
     if enc in ("jpeg", "png"):
         return _decode_image(data, enc, dtype, shp, cfg)
     raise CodecError(f"unknown array encoding {enc!r}")

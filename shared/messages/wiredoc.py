@@ -45,7 +45,7 @@ SCHEMA_DIR = Path("docs") / "schema"
 
 ENCODINGS: dict[str, tuple[str, ...]] = {
     "rgb": ("raw", "jpeg"),
-    "depth": ("raw", "png"),
+    "depth": ("raw", "zstd2d", "png"),
     "mask": ("bits", "rle"),
     "label": ("raw", "zlib"),
     "plain": ("raw",),
@@ -275,7 +275,7 @@ def accepted_encodings(spec: ArraySpec) -> list[str]:
     if "uint8" in spec.dtypes and spec.shape is not None and len(spec.shape) == 3 and spec.shape[2] in (3, None):
         out.append("jpeg")
     if "uint16" in spec.dtypes and spec.shape is not None and len(spec.shape) == 2:
-        out.append("png")
+        out += ["png", "zstd2d"]
     return out
 
 
@@ -443,6 +443,7 @@ def _arrays_section() -> list[str]:
         ["`zlib`", "any (label maps)", "`data` is a zlib stream (RFC 1950) of the `raw` bytes"],
         ["`jpeg`", "uint8 (H, W, 3)", "`data` is a baseline JPEG; decode to RGB. Lossy: a link sends it only with `transport.codec.rgb: jpeg`"],
         ["`png`", "uint16 (H, W)", "`data` is a 16-bit greyscale PNG (lossless)"],
+        ["`zstd2d`", "uint16 (H, W)", "lossless depth. Let x be the depth and r = x - left - up + up-left (mod 2^16; x outside the image counts as 0), so that x is the prefix sum of r over rows and then columns. Each r is zigzag-mapped as int16 to z = (r << 1) ^ (r >> 15). `data` is one zstd frame of all the low bytes of z, row-major, then all the high bytes"],
         ["`bits`", "bool", "`data` is the C-order flattened array packed 8 to a byte, first element in the most significant bit (numpy `packbits`), the last byte zero-padded: ceil(n / 8) bytes"],
         ["`rle`", "bool", "`data` is little-endian uint32 run lengths of the C-order flattened array, alternating False, True, False, ... and starting with False (a first run of 0 when it starts True); they sum to prod(shape)"],
     ]  # fmt: skip

@@ -336,6 +336,15 @@ ARRAY_CASES: dict[str, Callable[[], dict]] = {
     "png-8bit": lambda: nd("png", "uint16", [6, 5], _png8(6, 5)),
     "png-declares-uint8": lambda: nd("png", "uint8", [6, 5], png16_bytes(6, 5)),
     "png-garbage": lambda: nd("png", "uint16", [6, 5], b"\x89PNG\r\n\x1a\n garbage"),
+    # zstd2d depth: the declaration bounds what is inflated, whatever the zstd frame claims
+    "zstd2d-huge-declared": lambda: nd("zstd2d", "uint16", [100_000, 100_000], _zstd(b"\x00" * 64)),
+    "zstd2d-bomb": lambda: nd("zstd2d", "uint16", [6, 5], _zstd(b"\x00" * 2**24)),
+    "zstd2d-short": lambda: nd("zstd2d", "uint16", [6, 5], _zstd(b"\x00" * 59)),
+    "zstd2d-long": lambda: nd("zstd2d", "uint16", [6, 5], _zstd(b"\x00" * 61)),
+    "zstd2d-truncated": lambda: nd("zstd2d", "uint16", [6, 5], _zstd(bytes(range(60)))[:-3]),
+    "zstd2d-garbage": lambda: nd("zstd2d", "uint16", [6, 5], b"not zstd at all"),
+    "zstd2d-declares-uint8": lambda: nd("zstd2d", "uint8", [6, 5], _zstd(b"\x00" * 30)),
+    "zstd2d-declares-3d": lambda: nd("zstd2d", "uint16", [6, 5, 1], _zstd(b"\x00" * 60)),
     # masks
     "rle-sum-short": lambda: nd("rle", "bool", [10], _rle([3, 4])),
     "rle-sum-long": lambda: nd("rle", "bool", [10], _rle([3, 4, 5])),
@@ -369,13 +378,19 @@ ARRAY_CASES: dict[str, Callable[[], dict]] = {
 }
 
 
+def _zstd(raw: bytes) -> bytes:
+    import zstandard
+
+    return zstandard.ZstdCompressor(level=1).compress(raw)
+
+
 def _png8(h: int, w: int) -> bytes:
     buf = io.BytesIO()
     Image.fromarray(np.zeros((h, w), dtype=np.uint8)).save(buf, format="PNG")
     return buf.getvalue()
 
 
-OVER_LIMIT = {"raw-huge-float64", "zlib-huge", "bits-huge", "rle-huge", "png-huge-declared",
+OVER_LIMIT = {"raw-huge-float64", "zlib-huge", "bits-huge", "rle-huge", "png-huge-declared", "zstd2d-huge-declared",
               "jpeg-huge-declared", "shape-overflows-uint64"}
 
 
@@ -702,3 +717,12 @@ def test_type_confused_body_names_message_and_field(case: str) -> None:
     assert text.startswith(f"{expected.__name__}."), text
     for word in words:
         assert word in text, f"{word!r} not in {text!r}"
+
+
+def test_zstd2d_bomb_is_not_inflated_past_its_declaration() -> None:
+    """A 16 MiB zstd frame declared as 6x5 depth: refused, and the reader never holds more
+    than the declared 60 bytes and one more."""
+    bomb = _zstd(b"\x00" * 2**24)
+    assert len(bomb) < 2**12
+    err = refused(frame_with(depth=nd("zstd2d", "uint16", [6, 5], bomb)))
+    assert "zstd2d" in str(err) and "61+ bytes" in str(err)

@@ -121,7 +121,7 @@ def test_documented_encodings_are_what_the_codec_sends():
     assert set(_specs()) <= set(ENCODINGS) == set(msgs)
     for kind, make in msgs.items():
         seen: set[str] = set()
-        for rgb, depth, masks, labels in itertools.product(("raw", "jpeg"), ("raw", "png"), ("bits", "rle"), ("raw", "zlib")):
+        for rgb, depth, masks, labels in itertools.product(("raw", "jpeg"), ("raw", "png", "zstd"), ("bits", "rle"), ("raw", "zlib")):
             cfg = CodecConfig(rgb=rgb, depth=depth, masks=masks, labels=labels)
             seen |= {e for k, e in _encodings(msgpack.unpackb(make(cfg))["body"]) if k == kind}
         assert seen == set(ENCODINGS[kind]), kind
