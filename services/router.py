@@ -16,8 +16,10 @@ def run_router(cfg: TransportConfig, stop: threading.Event | None = None) -> Non
     """Serve as a router until SIGINT/SIGTERM/SIGHUP (or ``stop`` is set), then close cleanly."""
     stop = stop or threading.Event()
     install_stop_handlers(stop.set)
-    lifeline = start_lifeline(stop.set)  # launched: end with the launcher, however it ends
+    lifeline = start_lifeline()  # launched: end with the launcher, however it ends
     session = open_session(cfg)
+    if lifeline is not None:
+        lifeline.stop_with(stop.set)
     try:
         log.info("zenoh router %s listening on %s", session.zid(), ", ".join(cfg.listen) or "(default)")
         while not stop.wait(0.5):

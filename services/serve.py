@@ -65,13 +65,15 @@ def serve(
 ) -> None:
     stop = stop or threading.Event()
     install_stop_handlers(stop.set)
-    lifeline = start_lifeline(stop.set)  # launched: end with the launcher, however it ends
+    lifeline = start_lifeline()  # launched: end with the launcher, however it ends
     from shared.runtime.status import StatusReporter
     from shared.topics import Topics
 
     node = build_node(service, cfg, out=out, resume=resume)
     heartbeat = cfg.transport if service in cfg.transport.status_heartbeat else None
     reporter = StatusReporter(node.book, node.bus, Topics(cfg.robot_id).status(service), heartbeat=heartbeat)
+    if lifeline is not None:
+        lifeline.stop_with(stop.set)  # up: from now on the launcher's death is an orderly stop
     log.info("%s serving as robot %s", service, cfg.robot_id)
     try:
         while not stop.wait(1.0):

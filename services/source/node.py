@@ -43,10 +43,12 @@ def run_source(
         stop.set()
 
     install_stop_handlers(stop_now)
-    lifeline = start_lifeline(stop_now)  # launched: end with the launcher, however it ends
+    lifeline = start_lifeline()  # launched: end with the launcher, however it ends
     reader = open_sequence(sequence, cfg.source.dataset, cfg.source)
     topics = Topics(cfg.robot_id)
     bus = ZenohBus.open(cfg.transport, cfg.robot_id)
+    if lifeline is not None:
+        lifeline.stop_with(stop_now)  # connected: from now on the launcher's death is an orderly stop
     reporter = session = alive = token = bar = None
     try:
         token = bus.declare_alive(topics.alive("source"))

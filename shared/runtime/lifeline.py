@@ -105,10 +105,19 @@ def set_parent_death_signal(sig: int = signal.SIGTERM) -> bool:
     return True
 
 
+def exit_now() -> None:
+    """What a launcher's death does before the service can stop in order (still opening its
+    bus, loading models): a Zenoh open waiting for a router that went with the launcher
+    never returns to look at a stop event, and there is nothing to save yet."""
+    logging.shutdown()
+    os._exit(1)
+
+
 class Lifeline:
-    """Ends this process with its launcher: see the module docstring. ``on_gone`` is the
-    orderly stop (set the stop event); it is called once, from the watch thread or (through
-    the parent-death SIGTERM) from the stop handler."""
+    """Ends this process with its launcher: see the module docstring. ``on_gone`` is called
+    once, from the watch thread, when the launcher has gone: :func:`exit_now` until the
+    service is up, then (:meth:`stop_with`) its orderly stop. The parent-death SIGTERM goes to
+    the stop handler instead, which the watch backs up within one period."""
 
     def __init__(self, launcher: int, on_gone: Callable[[], None], *, grace_s: float, period_s: float = WATCH_PERIOD_S) -> None:
         self.launcher = launcher
@@ -132,15 +141,21 @@ class Lifeline:
                 self.on_gone()
             if self.gone_at is not None and time.monotonic() - self.gone_at > self.grace_s:
                 log.error("orderly stop took over %.0f s after the launcher went: exiting now", self.grace_s)
-                logging.shutdown()
-                os._exit(1)
+                exit_now()
             self._closed.wait(self.period_s)
+
+    def stop_with(self, on_gone: Callable[[], None]) -> None:
+        """The service is up: from now on the launcher's death means ``on_gone`` (an orderly
+        stop), and :func:`exit_now` only once the grace has run out."""
+        self.on_gone = on_gone
+        if self.gone_at is not None:
+            on_gone()
 
     def close(self) -> None:
         self._closed.set()
 
 
-def start_lifeline(on_gone: Callable[[], None]) -> Lifeline | None:
+def start_lifeline(on_gone: Callable[[], None] = exit_now) -> Lifeline | None:
     """The lifeline when launched by ``trackgraph launch`` (its pid in the environment), else
     None. A launcher already gone by now triggers ``on_gone`` within one watch period."""
     pid = launcher_pid()
