@@ -77,6 +77,8 @@ def launcher_pid(environ: dict[str, str] | None = None) -> int | None:
     except ValueError:
         log.warning("%s=%r is not a pid: no launcher lifeline", LAUNCHER_PID_ENV, raw)
         return None
+    # pid 1 (a container whose entrypoint is the launcher) is nobody's lifeline: when it dies the
+    # kernel ends the whole container, and an orphan's parent would be 1 again.
     return pid if pid > 1 else None
 
 
