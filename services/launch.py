@@ -9,8 +9,10 @@ freezes or loses the router). What each service is doing comes from its own repo
 table shows each one's rate, drops, queue depth and progress (frames done of total, ETA). A crashed or unresponsive service is restarted under its
 bounded policy, with exponential backoff; fusion is restarted with ``--resume`` so it goes on
 from its last snapshot. A service that exhausts its policy ends the launch with an error.
-On Ctrl-C, or when every finite service has finished, the others get SIGTERM in reverse
-start order (the router last), and SIGKILL after ``stop_timeout_s``.
+On Ctrl-C (SIGINT, SIGTERM or SIGHUP), or when every finite service has finished, the others
+get SIGTERM in reverse start order (the router last), and SIGKILL after ``stop_timeout_s``.
+A launcher that dies without that (SIGKILL, a crash) still takes its services with it: each
+one holds a lifeline to it (:mod:`shared.runtime.lifeline`).
 
 Each child runs ``python -m services.cli ...`` in a new process group with its output in
 ``LOG_DIR/<service>.log`` and its last status report, written at stop, in
@@ -36,6 +38,7 @@ from shared.config.base import ConfigError, deep_merge, save_resolved, validate
 from shared.config.launch import LaunchConfig, RestartPolicy, ServiceSpec, load_launch
 from shared.config.root import TrackGraphConfig
 from shared.procfs import status_mb
+from shared.runtime.lifeline import LAUNCHER_GRACE_ENV, LAUNCHER_PID_ENV, install_stop_handlers
 from shared.runtime.status import read_status, status_path
 
 if TYPE_CHECKING:
@@ -209,7 +212,9 @@ class Supervisor:
         cmd = list(p.cmd)
         if p.name == "fusion" and p.exit_codes and "--resume" not in cmd:
             cmd.append("--resume")  # a crashed fusion goes on from its last snapshot
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        # The lifeline (shared/runtime/lifeline.py): the service ends with this launcher even
+        # when it dies without stopping them (SIGKILL, OOM killer), within its own grace.
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", LAUNCHER_PID_ENV: str(os.getpid()), LAUNCHER_GRACE_ENV: f"{self.launch.stop_timeout_s:g}"}
         logf = open(p.log_path, "ab")  # noqa: SIM115 - the child owns it for its lifetime
         try:
             logf.write(f"\n==== {time.strftime('%Y-%m-%d %H:%M:%S')} start: {' '.join(cmd)}\n".encode())
@@ -520,10 +525,8 @@ def _kill(popen: subprocess.Popen, sig: int, timeout: float) -> None:
 
 
 def run_launch(path: Path, *, sequence: Path | None = None, out: Path | None = None, log_dir: Path | None = None, status: bool = True) -> dict[str, Any]:
-    """Plan and supervise a launch file until it ends; SIGINT/SIGTERM stop it cleanly."""
+    """Plan and supervise a launch file until it ends; SIGINT/SIGTERM/SIGHUP stop it cleanly."""
     plan = plan_launch(path, sequence=sequence, out=out, log_dir=log_dir)
     sup = Supervisor(plan, status=status)
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: sup.stop_event.set())
+    install_stop_handlers(sup.stop_event.set)  # SIGHUP too: a closed terminal stops the launch in order
     return sup.run()

@@ -3,26 +3,29 @@
 from __future__ import annotations
 
 import logging
-import signal
 import threading
 
 from shared.config import TransportConfig
+from shared.runtime.lifeline import install_stop_handlers, start_lifeline
 from shared.transport import open_session
 
 log = logging.getLogger(__name__)
 
 
 def run_router(cfg: TransportConfig, stop: threading.Event | None = None) -> None:
-    """Serve as a router until SIGINT/SIGTERM (or ``stop`` is set), then close cleanly."""
+    """Serve as a router until SIGINT/SIGTERM/SIGHUP (or ``stop`` is set), then close cleanly."""
     stop = stop or threading.Event()
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: stop.set())
+    install_stop_handlers(stop.set)
+    lifeline = start_lifeline()  # launched: end with the launcher, however it ends
     session = open_session(cfg)
+    if lifeline is not None:
+        lifeline.stop_with(stop.set)
     try:
         log.info("zenoh router %s listening on %s", session.zid(), ", ".join(cfg.listen) or "(default)")
         while not stop.wait(0.5):
             pass
     finally:
         session.close()
+        if lifeline is not None:
+            lifeline.close()
         log.info("router closed")

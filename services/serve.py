@@ -1,4 +1,4 @@
-"""``trackgraph serve SERVICE``: run one service node in this process until SIGINT/SIGTERM
+"""``trackgraph serve SERVICE``: run one service node in this process until SIGINT/SIGTERM/SIGHUP
 (or, for fusion, until the sequence it maps has ended when ``exit_at_end``).
 
 Every node has a ``book`` (its session's :class:`~shared.runtime.status.StatusBook`) and a
@@ -8,11 +8,11 @@ second and once at stop, and writes the last report to ``status_file``."""
 from __future__ import annotations
 
 import logging
-import signal
 import threading
 from pathlib import Path
 
 from shared.config.root import TrackGraphConfig
+from shared.runtime.lifeline import install_stop_handlers, start_lifeline
 
 log = logging.getLogger(__name__)
 
@@ -64,15 +64,16 @@ def serve(
     status_file: Path | None = None,
 ) -> None:
     stop = stop or threading.Event()
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: stop.set())
+    install_stop_handlers(stop.set)
+    lifeline = start_lifeline()  # launched: end with the launcher, however it ends
     from shared.runtime.status import StatusReporter
     from shared.topics import Topics
 
     node = build_node(service, cfg, out=out, resume=resume)
     heartbeat = cfg.transport if service in cfg.transport.status_heartbeat else None
     reporter = StatusReporter(node.book, node.bus, Topics(cfg.robot_id).status(service), heartbeat=heartbeat)
+    if lifeline is not None:
+        lifeline.stop_with(stop.set)  # up: from now on the launcher's death is an orderly stop
     log.info("%s serving as robot %s", service, cfg.robot_id)
     try:
         while not stop.wait(1.0):
@@ -83,4 +84,6 @@ def serve(
         node.close(keep_bus=True)
         reporter.stop(status_file)
         node.bus.close()
+        if lifeline is not None:
+            lifeline.close()
         log.info("%s stopped: %s", service, node.stats())

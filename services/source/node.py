@@ -17,6 +17,7 @@ from services.source.core import ReplayStats
 from services.source.session import SourceSession
 from shared.config.root import TrackGraphConfig
 from shared.datasets import open_sequence
+from shared.runtime.lifeline import install_stop_handlers, start_lifeline
 from shared.runtime.status import StatusReporter
 from shared.topics import Topics, service_of_alive_key
 from shared.transport import LivelinessWatcher, TransportError, ZenohBus
@@ -35,9 +36,19 @@ def run_source(
 ) -> ReplayStats:
     """Replay ``sequence`` over Zenoh per ``cfg.source``; returns what was sent and dropped."""
     stop = stop or threading.Event()
+    signalled = threading.Event()
+
+    def stop_now() -> None:
+        signalled.set()
+        stop.set()
+
+    install_stop_handlers(stop_now)
+    lifeline = start_lifeline()  # launched: end with the launcher, however it ends
     reader = open_sequence(sequence, cfg.source.dataset, cfg.source)
     topics = Topics(cfg.robot_id)
     bus = ZenohBus.open(cfg.transport, cfg.robot_id)
+    if lifeline is not None:
+        lifeline.stop_with(stop_now)  # connected: from now on the launcher's death is an orderly stop
     reporter = session = alive = token = bar = None
     try:
         token = bus.declare_alive(topics.alive("source"))
@@ -53,7 +64,7 @@ def run_source(
             session.on_progress = lambda _stats: bar.update(1)
         heartbeat = cfg.transport if "source" in cfg.transport.status_heartbeat else None
         reporter = StatusReporter(session.book, bus, topics.status("source"), heartbeat=heartbeat)
-        if cfg.source.mode == "lossless" and not _wait_for(session.frames_out.has_subscribers, wait_subscribers_s, stop):
+        if cfg.source.mode == "lossless" and not _wait_for(session.frames_out.has_subscribers, wait_subscribers_s, stop) and not stop.is_set():
             raise TransportError(f"{topics.frames}: no subscriber after {wait_subscribers_s:.1f} s; lossless replay would lose frames")
         log.info("replaying %s (%d frames, %s mode) on %s", sequence, len(reader), cfg.source.mode, topics.frames)
         session.book.set_state("running")
@@ -69,7 +80,6 @@ def run_source(
             "published %d frames in %.1f s (%.1f Hz), dropped %d, refused by the reader %d, held %.1f s for restarting stages",
             stats.published, stats.seconds, stats.published / max(stats.seconds, 1e-9), stats.dropped, stats.rejected, session.pacer.held_s,
         )  # fmt: skip
-        return stats
     finally:
         if bar is not None:
             bar.close()
@@ -82,6 +92,13 @@ def run_source(
         if reporter is not None:
             reporter.stop(status_file)
         bus.close()
+        if lifeline is not None:
+            lifeline.close()
+    if signalled.is_set():
+        # Stopped by a signal before the end: not "finished" (exit 130, as Ctrl-C always was),
+        # so a launcher never mistakes an interrupted replay for a complete one.
+        raise KeyboardInterrupt
+    return stats
 
 
 def _wait_for(cond, timeout: float, stop: threading.Event) -> bool:
