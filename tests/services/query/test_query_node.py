@@ -13,6 +13,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 
+from services.keyframe_vl.embedder import WARMUP_TEXT
 from services.query.client import QueryClient, QueryRefused
 from services.query.node import QueryNode
 from services.router import run_router
@@ -87,6 +88,8 @@ def system():
 
     def embed(env) -> EmbedReply:
         req: EmbedRequest = env.body
+        if req.text == WARMUP_TEXT:  # the service's warm-up: any embedding will do
+            return EmbedReply(embedding=E[7], model="fake")
         word = req.text.split()[-1] if req.text else "plant"
         if word not in WORDS:
             return EmbedReply(model="fake", error=f"unknown word {word!r}")
