@@ -293,8 +293,8 @@ class TypedQueryable(Generic[M, R]):
 
     A malformed request is counted and answered with an error reply; a handler exception
     is answered the same way. Every query is finished, so no caller waits for its timeout.
-    At most ``capacity`` queries wait for a worker: one more is answered "overloaded: ..." at
-    once (``on_drop`` is told). The handler's envelope carries ``received``, when the query
+    At most ``capacity`` queries wait for a worker (0: none, every query finds an idle one
+    or is refused): one more is answered "overloaded: ..." at once (``on_drop`` is told). The handler's envelope carries ``received``, when the query
     arrived, so a deadline can count the wait for a worker.
     """
 
@@ -321,7 +321,11 @@ class TypedQueryable(Generic[M, R]):
         """Queries waiting for a worker, each with its ``time.monotonic()`` of arrival."""
         self._cv = threading.Condition()
         self._closed = False
+        if capacity < 0 or workers < 1:
+            raise ValueError(f"{key}: a queryable needs workers >= 1 and capacity >= 0 (got {workers}, {capacity})")
         self.capacity = capacity
+        self._idle = workers
+        """Workers not answering a query now: a query for one of them never counts as waiting."""
         self._seq = 0
         self._q = session.declare_queryable(key, self._on_query)
         self._threads = [
@@ -333,7 +337,7 @@ class TypedQueryable(Generic[M, R]):
     def _on_query(self, query: zenoh.Query) -> None:
         received = time.monotonic()
         with self._cv:
-            if len(self._queue) >= self.capacity:
+            if len(self._queue) >= self.capacity + self._idle:
                 self.stats.add("dropped")
                 overloaded = True
             else:
@@ -342,7 +346,7 @@ class TypedQueryable(Generic[M, R]):
                 overloaded = False
         if overloaded:
             # Answering at once is cheap and non-blocking, and keeps the caller from waiting out its timeout.
-            query.reply_err(f"overloaded: {self.capacity} requests already wait for a worker; try again shortly".encode())
+            query.reply_err(f"overloaded: every worker busy and {self.capacity} requests waiting; try again shortly".encode())
             query.drop()
             if self.on_drop is not None:
                 try:
@@ -358,10 +362,13 @@ class TypedQueryable(Generic[M, R]):
                 if self._closed and not self._queue:
                     return
                 query, received = self._queue.popleft()
+                self._idle -= 1
             try:
                 self._answer(query, received)
             finally:
                 query.drop()
+                with self._cv:
+                    self._idle += 1
 
     def _answer(self, query: zenoh.Query, received: float) -> None:
         payload = query.payload

@@ -16,12 +16,14 @@ Readiness and load (docs/architecture.md, "Query service"):
   loaded and run once), tried from :meth:`QuerySession.tick` every ``query.warmup_retry_s``.
   Until then its state is ``starting``; queries that come meanwhile are still answered as
   well as they can be.
-- At most ``query.queue_size`` requests wait for one of the ``query.workers``; one more is
-  answered "overloaded: ..." at once by the queryable, and counted (``overloaded``, and as
-  dropped on the ``query`` input).
-- A request's ``deadline_s`` counts from its receipt (``Envelope.received``): one whose
-  budget ran out while it waited is answered "deadline exceeded: ..." without being worked
-  on, and the ``vl/embed`` round trip and the wait for a resync are cut to what is left.
+- ``query.workers`` requests are worked on at once and at most ``query.queue_size`` more
+  wait for one of them (the queryable's threads are as many as both, and it keeps none
+  waiting of its own); one more is answered "overloaded: ..." at once by the queryable, and
+  counted (``overloaded``, and as dropped on the ``query`` input).
+- A request's ``deadline_s`` counts from its receipt (``Envelope.received``). One that waits
+  for a worker until its budget runs out is answered "deadline exceeded: ..." then, without
+  being worked on; the ``vl/embed`` round trip and the wait for a resync are cut to what is
+  left of it.
 - Text embeddings from ``vl/embed`` are kept in a bounded LRU (``query.embed_cache_size``).
 """
 
@@ -97,6 +99,10 @@ class QuerySession:
         self.warmup_tries = 0
         self._started = clock()
         self._next_warmup = float("-inf")
+        self._slots = threading.BoundedSemaphore(cfg.query.workers)
+        """One per worker: a request holds one while it is worked on."""
+        self._waiting = 0
+        """Requests waiting for a slot now."""
         self._count_lock = threading.Lock()
         self._closed = False
         self.token = None
@@ -115,14 +121,17 @@ class QuerySession:
         self.sync = self.graph.sync
         self.deltas = self.graph.deltas
         try:
+            # A thread per worker and per queue place: a request waiting for a slot waits in
+            # on_query, where its deadline can end the wait, not in the queryable's queue.
             self.queryable = bus.serve(
-                self.topics.query, QueryRequest, QueryReply, self.on_query, workers=cfg.query.workers,
-                capacity=cfg.query.queue_size, on_drop=self._on_overload,
+                self.topics.query, QueryRequest, QueryReply, self.on_query, workers=cfg.query.workers + cfg.query.queue_size,
+                capacity=0, on_drop=self._on_overload,
             )  # fmt: skip
         except BaseException:
             self.graph.close()
             raise
-        book.declare_input("query", getattr(self.queryable, "pending", None))
+        pending = getattr(self.queryable, "pending", None)
+        book.declare_input("query", lambda: self._waiting + (pending() if pending is not None else 0))
         # State "starting", no token: tick() warms the embedding path up first.
 
     # ------------------------------------------------------------------ graph
@@ -219,19 +228,18 @@ class QuerySession:
         self.book.count("query", "received")
         self._count("queries")
         try:
-            if deadline is not None and now >= deadline:
+            if not self._take_slot(now, deadline):
                 self._count("expired")
                 reply = QueryReply(
                     graph_seq=self.sync.graph_seq,
-                    error=f"deadline exceeded: waited {now - received:.3f} s for a worker, past the request's deadline_s "
-                    f"{req.deadline_s:g}; not worked on",
+                    error=f"deadline exceeded: waited {self._clock() - received:.3f} s for a worker, the request's "
+                    f"deadline_s is {req.deadline_s:g}; not worked on",
                 )  # fmt: skip
-            elif not self.sync.wait_synced(self.sync_wait_s if deadline is None else min(self.sync_wait_s, deadline - now)):
-                seq = self.sync.graph_seq
-                what = "no graph yet: fusion has not answered" if seq == 0 else f"graph resynchronising (at version {seq}, fusion is ahead)"
-                reply = QueryReply(graph_seq=seq, error=f"{what}; try again shortly")
             else:
-                reply = self.engine.answer(self.index, req, embed=lambda r: self._embed(r, deadline))
+                try:
+                    reply = self._work(req, deadline)
+                finally:
+                    self._slots.release()
         except Exception:
             # The queryable answers the caller with an error reply; here it is counted.
             self.book.count("query", "rejected")
@@ -244,9 +252,28 @@ class QuerySession:
         self.book.work_done(max(self._clock() - received, 0.0))
         return reply
 
-    def _count(self, name: str) -> None:
+    def _take_slot(self, now: float, deadline: float | None) -> bool:
+        """Wait for a worker's slot until ``deadline`` (this session's clock); False if it
+        passed first."""
+        if deadline is not None and now >= deadline:
+            return False
+        self._count("_waiting", 1)
+        try:
+            return self._slots.acquire(timeout=None if deadline is None else deadline - now)
+        finally:
+            self._count("_waiting", -1)
+
+    def _work(self, req: QueryRequest, deadline: float | None) -> QueryReply:
+        now = self._clock()
+        if not self.sync.wait_synced(self.sync_wait_s if deadline is None else max(min(self.sync_wait_s, deadline - now), 0.0)):
+            seq = self.sync.graph_seq
+            what = "no graph yet: fusion has not answered" if seq == 0 else f"graph resynchronising (at version {seq}, fusion is ahead)"
+            return QueryReply(graph_seq=seq, error=f"{what}; try again shortly")
+        return self.engine.answer(self.index, req, embed=lambda r: self._embed(r, deadline))
+
+    def _count(self, name: str, n: int = 1) -> None:
         with self._count_lock:  # several worker threads answer at once
-            setattr(self, name, getattr(self, name) + 1)
+            setattr(self, name, getattr(self, name) + n)
 
     # ------------------------------------------------------------------ lifecycle
 

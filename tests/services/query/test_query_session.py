@@ -6,6 +6,10 @@ with an error and not worked on, and text embeddings are kept in a bounded LRU."
 
 from __future__ import annotations
 
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import pytest
 
@@ -324,10 +328,47 @@ def test_an_overloaded_answer_is_counted():
     bus.serve = serve
     session = QuerySession(TrackGraphConfig.model_validate({"query": {"queue_size": 3, "workers": 2}}), bus, sync_wait_s=0)
     try:
-        assert (seen["capacity"], seen["workers"]) == (3, 2)
+        # A thread per worker and per queue place, none waiting in the queryable itself.
+        assert (seen["capacity"], seen["workers"]) == (0, 5)
         seen["on_drop"]()  # what the queryable calls as it answers "overloaded"
         report = session.book.report()
         assert report.figures["overloaded"] == 1 and {i.name: i.dropped for i in report.inputs}["query"] == 1
     finally:
+        session.close()
+        bus.close()
+
+
+def test_a_request_waiting_for_a_worker_is_answered_at_its_deadline():
+    bus = InProcessBus("robot0")
+    gate, working = threading.Event(), threading.Event()
+
+    def slow(env) -> EmbedReply:
+        if env.body.text == "slow chair":
+            working.set()
+            gate.wait(5)
+        return embed(env)
+
+    bus.serve(TOPICS.vl_embed, EmbedRequest, EmbedReply, slow)
+    fusion = FakeFusion(bus)
+    fusion.serve()
+    session = QuerySession(TrackGraphConfig.model_validate({"query": {"workers": 1}}), bus, sync_wait_s=0)
+    try:
+        session.tick(0.0)
+        fusion.add(seg(1, "chair"))
+        bus.drain()
+        with ThreadPoolExecutor(1) as pool:
+            busy = pool.submit(session.on_query, query_env("slow chair", received=None))
+            assert working.wait(5)  # the one worker is taken
+            t0 = time.monotonic()
+            late = session.on_query(query_env("chair", received=t0, deadline_s=0.3))
+            took = time.monotonic() - t0
+            gate.set()
+            assert busy.result(5).error is None
+        assert late.error.startswith("deadline exceeded: waited 0.3") and late.error.endswith("not worked on"), late.error
+        assert 0.29 <= took < 1.0, took  # answered when the budget ran out, not when the worker came free
+        assert session.on_query(query_env("chair", received=time.monotonic(), deadline_s=0.3)).error is None
+        assert session.book.report().figures["expired"] == 1
+    finally:
+        gate.set()
         session.close()
         bus.close()
