@@ -370,7 +370,8 @@ def _classify(reply_or_exc) -> str:
         msg = str(reply_or_exc)
         if "overloaded: " in msg:
             return "overloaded"
-        return "timeout" if "no reply within" in msg else "transport_error"
+        # Zenoh's own time-out comes back as an error reply "Timeout"; ours as "no reply within".
+        return "timeout" if "no reply within" in msg or msg.endswith(": Timeout") else "transport_error"
     if reply_or_exc.error is None:
         return "result"
     return "deadline" if reply_or_exc.error.startswith("deadline exceeded") else "refused"
