@@ -294,8 +294,9 @@ class TypedQueryable(Generic[M, R]):
     A malformed request is counted and answered with an error reply; a handler exception
     is answered the same way. Every query is finished, so no caller waits for its timeout.
     At most ``capacity`` queries wait for a worker (0: none, every query finds an idle one
-    or is refused): one more is answered "overloaded: ..." at once (``on_drop`` is told). The handler's envelope carries ``received``, when the query
-    arrived, so a deadline can count the wait for a worker.
+    or is refused): one more is answered "overloaded: ..." at once (``on_drop`` is told).
+    The handler's envelope carries ``received``, when the query arrived, so a deadline can
+    count the wait for a worker.
     """
 
     def __init__(

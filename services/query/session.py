@@ -9,7 +9,7 @@ in whole, so the queryable's worker threads answer from whole graph versions wit
 locking. Snapshot requests, and their retries with backoff while fusion is not there, happen
 in :meth:`QuerySession.tick`.
 
-Readiness and load (docs/architecture.md, "Query service"):
+Readiness and load (docs/architecture.md, "Query (paper III-F, eq. 10)"):
 
 - The session declares itself alive (liveliness token, status ``running``) only once its
   text-embedding path has answered one warm-up request (``vl/embed``, or the local encoder
@@ -89,7 +89,7 @@ class QuerySession:
         self.queries = 0
         self.refused = 0
         self.overloaded = 0
-        """Requests answered "overloaded" at once: ``queue_size`` others already waited."""
+        """Requests answered "overloaded" at once: every worker busy, ``queue_size`` others waiting."""
         self.expired = 0
         """Requests whose deadline ran out before a worker took them: not worked on."""
         self.ready = False
@@ -149,13 +149,10 @@ class QuerySession:
         """Embed one text past the cache, through the path queries take; on its answer
         declare the token and go ``running``, else try again ``warmup_retry_s`` later."""
         self.warmup_tries += 1
+        warm = getattr(self._embedder, "warm_up", None) if self._embedder is not None else None
         try:
-            if self._embedder is not None:
-                warm = getattr(self._embedder, "warm_up", None)
-                if warm is not None:
-                    warm()
-                else:
-                    self._embed_uncached(EmbedRequest(text=WARMUP_TEXT))
+            if warm is not None:
+                warm()  # a local encoder: load its model and run a text through it
             else:
                 self._embed_uncached(EmbedRequest(text=WARMUP_TEXT))
         except Exception as exc:  # noqa: BLE001 - not ready yet, whatever the reason: try again
