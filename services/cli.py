@@ -275,6 +275,8 @@ def _cmd_query(args: argparse.Namespace) -> int:
         if len(pos) > 1:
             raise CommandError(f"--live takes one query TEXT, got {len(pos)} arguments")
         text = pos[0] if pos else None
+        if args.timeout is not None and not args.timeout > 0:
+            raise CommandError(f"--timeout must be a positive number of seconds, got {args.timeout}")
         req = _query_request(args, text)
         from services.query.client import QueryClient
 
@@ -603,7 +605,7 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--config", type=Path, metavar="FILE", help="offline: the encoder's config (default MAP_DIR/config.yaml); live: transport and robot id")
     q.add_argument("--connect", action="append", metavar="ENDPOINT", help="live: router endpoint(s)")
     q.add_argument("--robot", metavar="ID", help="live: robot id (default: the config's)")
-    q.add_argument("--timeout", type=float, metavar="S", help="live: seconds to wait for the answer")
+    q.add_argument("--timeout", type=float, metavar="S", help="live: seconds to wait for the answer (the request's deadline is a little under it)")
     q.add_argument("--json", action="store_true", help='print [{"segment", "score", "centroid", "bbox", "room", "best_track"}]')
     q.set_defaults(func=_cmd_query)
 

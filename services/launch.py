@@ -162,6 +162,8 @@ class Proc:
     reason: str = ""
     peak_rss_mb: float = 0.0
     """Largest resident memory seen of any run of the process (Linux /proc)."""
+    starting_seen: float = 0.0
+    """When this run last reported state ``starting`` (waiting for what it needs to be alive)."""
 
     @property
     def name(self) -> str:
@@ -203,6 +205,16 @@ class Supervisor:
         if name == "router":
             return p.popen is not None and p.popen.poll() is None and _port_open(self.launch.listen)
         return self.watcher is not None and f"{self.topics_root}/{name}" in self.watcher.alive()
+
+    def _reports_starting(self, p: Proc) -> bool:
+        """This run of ``p`` (its pid) reports state ``starting`` now: it is up but waits for
+        what it needs to do its job (keyframe_vl loading its models, the query service for a
+        ``vl/embed`` that may be on a machine not started yet), so its alive time-out waits too."""
+        got = None if self.reports is None or p.popen is None else self.reports.get(p.name)
+        if got is None:
+            return False
+        st, age = got
+        return st.pid == p.popen.pid and st.state == "starting" and age < REPORT_GONE_S
 
     def _event(self, msg: str) -> None:
         log.info("%s", msg)
@@ -298,7 +310,9 @@ class Supervisor:
                 p.state, p.gone_since = "alive", None
             elif self.watcher is None and name != "router":
                 continue  # not connected yet: liveliness cannot be told
-            elif p.state == "starting" and now - max(p.started_at, self._watching_since) > self.launch.alive_timeout_s:
+            elif p.state == "starting" and self._reports_starting(p):
+                p.starting_seen = now  # up and saying why it is not alive yet: no time-out runs
+            elif p.state == "starting" and now - max(p.started_at, self._watching_since, p.starting_seen) > self.launch.alive_timeout_s:
                 self._crashed(p, f"not alive {self.launch.alive_timeout_s:.0f} s after start")
             elif p.state in ("alive", "unresponsive") and name != "router":
                 p.gone_since = p.gone_since or now

@@ -23,7 +23,8 @@ def build_node(service: str, cfg: TrackGraphConfig, *, out: Path | None = None, 
     if service == "keyframe_vl":
         from services.keyframe_vl.node import KeyframeVLNode
 
-        return KeyframeVLNode(cfg)
+        # Models load in start(), once the status reports (state "starting") go out.
+        return KeyframeVLNode(cfg, start=False)
     if service == "tracker":
         from services.tracker.node import TrackerNode
 
@@ -72,10 +73,13 @@ def serve(
     node = build_node(service, cfg, out=out, resume=resume)
     heartbeat = cfg.transport if service in cfg.transport.status_heartbeat else None
     reporter = StatusReporter(node.book, node.bus, Topics(cfg.robot_id).status(service), heartbeat=heartbeat)
-    if lifeline is not None:
-        lifeline.stop_with(stop.set)  # up: from now on the launcher's death is an orderly stop
-    log.info("%s serving as robot %s", service, cfg.robot_id)
     try:
+        start = getattr(node, "start", None)
+        if start is not None:
+            start()  # what takes a while to be ready (model loading) runs while "starting" is reported
+        if lifeline is not None:
+            lifeline.stop_with(stop.set)  # up: from now on the launcher's death is an orderly stop
+        log.info("%s serving as robot %s", service, cfg.robot_id)
         while not stop.wait(1.0):
             if exit_at_end and getattr(node, "finished", None) is not None and node.finished.is_set():
                 break

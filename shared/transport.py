@@ -15,7 +15,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Generic, Literal, TypeVar
 
 import zenoh
@@ -293,6 +293,10 @@ class TypedQueryable(Generic[M, R]):
 
     A malformed request is counted and answered with an error reply; a handler exception
     is answered the same way. Every query is finished, so no caller waits for its timeout.
+    At most ``capacity`` queries wait for a worker (0: none, every query finds an idle one
+    or is refused): one more is answered "overloaded: ..." at once (``on_drop`` is told).
+    The handler's envelope carries ``received``, when the query arrived, so a deadline can
+    count the wait for a worker.
     """
 
     def __init__(
@@ -307,15 +311,22 @@ class TypedQueryable(Generic[M, R]):
         codec: CodecConfig | None = None,
         workers: int = 1,
         capacity: int = 256,
+        on_drop: Callable[[], None] | None = None,
     ) -> None:
         self.key, self.request_type, self.reply_type = key, request_type, reply_type
+        self.on_drop = on_drop
         self.robot_id, self.handler = robot_id, handler
         self.codec = codec or CodecConfig()
         self.stats = LinkStats()
-        self._queue: collections.deque[zenoh.Query] = collections.deque()
+        self._queue: collections.deque[tuple[zenoh.Query, float]] = collections.deque()
+        """Queries waiting for a worker, each with its ``time.monotonic()`` of arrival."""
         self._cv = threading.Condition()
         self._closed = False
+        if capacity < 0 or workers < 1:
+            raise ValueError(f"{key}: a queryable needs workers >= 1 and capacity >= 0 (got {workers}, {capacity})")
         self.capacity = capacity
+        self._idle = workers
+        """Workers not answering a query now: a query for one of them never counts as waiting."""
         self._seq = 0
         self._q = session.declare_queryable(key, self._on_query)
         self._threads = [
@@ -325,18 +336,24 @@ class TypedQueryable(Generic[M, R]):
             t.start()
 
     def _on_query(self, query: zenoh.Query) -> None:
+        received = time.monotonic()
         with self._cv:
-            if len(self._queue) >= self.capacity:
+            if len(self._queue) >= self.capacity + self._idle:
                 self.stats.add("dropped")
                 overloaded = True
             else:
-                self._queue.append(query)
+                self._queue.append((query, received))
                 self._cv.notify()
                 overloaded = False
         if overloaded:
             # Answering at once is cheap and non-blocking, and keeps the caller from waiting out its timeout.
-            query.reply_err(b"overloaded: too many queued requests")
+            query.reply_err(f"overloaded: every worker busy and {self.capacity} requests waiting; try again shortly".encode())
             query.drop()
+            if self.on_drop is not None:
+                try:
+                    self.on_drop()
+                except Exception:  # noqa: BLE001 - a counter must not break the callback
+                    log.debug("%s: on_drop failed", self.key, exc_info=True)
 
     def _run(self) -> None:
         while True:
@@ -345,13 +362,16 @@ class TypedQueryable(Generic[M, R]):
                     self._cv.wait(0.2)
                 if self._closed and not self._queue:
                     return
-                query = self._queue.popleft()
+                query, received = self._queue.popleft()
+                self._idle -= 1
             try:
-                self._answer(query)
+                self._answer(query, received)
             finally:
                 query.drop()
+                with self._cv:
+                    self._idle += 1
 
-    def _answer(self, query: zenoh.Query) -> None:
+    def _answer(self, query: zenoh.Query, received: float) -> None:
         payload = query.payload
         if payload is None:
             self.stats.add("rejected", error="empty request")
@@ -359,7 +379,7 @@ class TypedQueryable(Generic[M, R]):
             return
         data = payload.to_bytes()
         try:
-            env = decode(data, self.request_type, self.codec)
+            env = replace(decode(data, self.request_type, self.codec), received=received)
             check_robot(self.key, robot_of_key(self.key), env)
         except CodecError as exc:
             self.stats.add("rejected", error=str(exc))
@@ -497,9 +517,9 @@ class ZenohBus:
         return sub
 
     def serve(self, key: str, request_type: type[M], reply_type: type[R], handler: Callable[[Envelope[M]], R], *,
-              workers: int = 1, capacity: int = 256) -> TypedQueryable[M, R]:  # fmt: skip
+              workers: int = 1, capacity: int = 256, on_drop: Callable[[], None] | None = None) -> TypedQueryable[M, R]:  # fmt: skip
         q = TypedQueryable(self.session, key, request_type, reply_type, handler, robot_id=self.robot_id, codec=self.codec,
-                           workers=workers, capacity=capacity)  # fmt: skip
+                           workers=workers, capacity=capacity, on_drop=on_drop)  # fmt: skip
         self._endpoints.append(q)
         return q
 

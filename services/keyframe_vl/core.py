@@ -11,7 +11,7 @@ from typing import Annotated
 
 import numpy as np
 
-from services.keyframe_vl.embedder import Embedder
+from services.keyframe_vl.embedder import Embedder, warm_up_encoder
 from services.keyframe_vl.encoders import make_vl_encoder
 from services.keyframe_vl.segmenters import make_segmenter
 from shared.config.keyframe_vl import KeyframeVLConfig
@@ -48,6 +48,11 @@ class KeyframeVLCore:
         self.segmenter = segmenter or make_segmenter(cfg.segmenter, device=device, fp16=fp16)
         self.encoder = encoder or make_vl_encoder(cfg.vl, device=device, fp16=fp16)
         self.embedder = Embedder(self.encoder, cfg.embed_cache_size)
+
+    def warm_up(self) -> None:
+        """Make the VL encoder's text path ready (:func:`warm_up_encoder`): a model loaded
+        lazily is loaded now, so the first novel query text costs milliseconds."""
+        warm_up_encoder(self.encoder)
 
     def segment(self, req: KeyframeRequest) -> tuple[KeyframeImage, Masks, KeyframeMasks]:
         image = keyframe_image(req)

@@ -40,6 +40,20 @@ class TextCache:
         return vec
 
 
+WARMUP_TEXT = "a photo of something"
+"""What a warm-up embeds (any text: the encoder's own warm-up skips its caches)."""
+
+
+def warm_up_encoder(encoder: VLEncoder) -> None:
+    """Make ``encoder`` ready to embed a novel text at its normal speed: its own ``warm_up()``
+    where it has one (a lazily loaded text model), else one text through its text tower."""
+    warm = getattr(encoder, "warm_up", None)
+    if warm is not None:
+        warm()
+    else:
+        encoder.encode_text([WARMUP_TEXT])
+
+
 class Embedder:
     """One encoder and its text cache."""
 
@@ -50,6 +64,10 @@ class Embedder:
     @property
     def name(self) -> str:
         return self.encoder.name
+
+    def warm_up(self) -> None:
+        """The encoder's warm-up (:func:`warm_up_encoder`), past this cache."""
+        warm_up_encoder(self.encoder)
 
     def embed_text(self, text: str) -> Annotated[np.ndarray, "(D,) float32"]:
         return self._cache.get(text, lambda: np.asarray(self.encoder.encode_text([text])[0], np.float32))

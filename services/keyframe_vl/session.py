@@ -23,6 +23,7 @@ from shared.messages.rpc import EmbedReply, EmbedRequest
 from shared.perception import KeyframeImage, Masks
 from shared.runtime.bus import Bus
 from shared.runtime.session import Session
+from shared.runtime.status import StatusBook
 
 log = logging.getLogger(__name__)
 
@@ -46,9 +47,9 @@ class KeyframeVLSession(Session):
 
     def __init__(
         self, bus: Bus, core, *, defer_clip: Callable[[ClipJob], None] | None = None,
-        clock: Callable[[], float] = time.monotonic,
+        clock: Callable[[], float] = time.monotonic, book: StatusBook | None = None,
     ) -> None:  # fmt: skip
-        super().__init__(bus, clock=clock)
+        super().__init__(bus, clock=clock, book=book)
         self.core = core
         self.defer_clip = defer_clip
         self.processed = 0

@@ -4,7 +4,9 @@
         for hit in client.query("red armchair", top_k=3):
             print(hit.segment, hit.score, hit.centroid)
 
-Any number of clients may query one service at once; each call is one Zenoh request.
+Any number of clients may query one service at once; each call is one Zenoh request, with
+a ``deadline_s`` a little under the client's time-out, so a service too busy to answer in
+time says so ("deadline exceeded", or "overloaded" at once) instead of leaving it to time out.
 :meth:`QueryClient.snapshot` asks fusion for the graph itself (``graph/snapshot``), with the
 whole map's mesh if wanted.
 """
@@ -26,6 +28,17 @@ WHOLE_MAP_TIMEOUT_S = 30.0
 seconds, a bare graph milliseconds."""
 
 
+DEADLINE_MARGIN_S = 0.2
+"""A request's ``deadline_s`` is the client's time-out less this (at most a fifth of it): the
+trip to the service and the reply's way back come out of the time-out too, so the service's
+"deadline exceeded" answer still arrives before the client gives up."""
+
+
+def deadline_for(timeout_s: float) -> float:
+    """The ``deadline_s`` a request sent with ``timeout_s`` carries."""
+    return max(timeout_s - DEADLINE_MARGIN_S, 0.8 * timeout_s)
+
+
 class QueryRefused(TransportError):
     """The service answered, but refused the query (the message says why)."""
 
@@ -45,6 +58,8 @@ class QueryClient:
         self.topics = Topics(robot_id)
         self.robot_id = robot_id
         self.timeout_s = timeout_s if timeout_s is not None else max(self.transport.query_timeout_s, 5.0)
+        if not self.timeout_s > 0:
+            raise ValueError(f"QueryClient timeout_s must be positive, got {self.timeout_s}")
         self._own_session = session is None
         self.session = session or open_session(self.transport)
         self._seq = 0
@@ -72,7 +87,10 @@ class QueryClient:
         return reply.hits
 
     def ask(self, req: QueryRequest) -> QueryReply:
-        """The raw reply to one request, error replies included."""
+        """The raw reply to one request, error replies included. A request without
+        ``deadline_s`` gets one from this client's time-out (:func:`deadline_for`)."""
+        if req.deadline_s is None:
+            req = req.model_copy(update={"deadline_s": deadline_for(self.timeout_s)})
         self._seq += 1
         reply = request(
             self.session, self.topics.query, req, QueryReply,

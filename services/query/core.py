@@ -179,11 +179,13 @@ class QueryEngine:
         if req.top_k is not None and req.top_k > cfg.max_top_k:
             raise QueryError(f"top_k {req.top_k} exceeds the service's maximum of {cfg.max_top_k}")
 
-    def answer(self, index: QueryIndex, req: QueryRequest) -> QueryReply:
-        """The ranked segments, or a reply carrying the reason it was refused."""
+    def answer(self, index: QueryIndex, req: QueryRequest, embed: Embed | None = None) -> QueryReply:
+        """The ranked segments, or a reply carrying the reason it was refused. ``embed``
+        replaces the engine's own for this request (the service's, cut to its deadline)."""
+        embed = embed or self.embed
         try:
             self.check(req)
-            hits = self.rank(index, req, self.embed(EmbedRequest(text=req.text, image=req.image)))
+            hits = self.rank(index, req, embed(EmbedRequest(text=req.text, image=req.image)))
         except QueryError as exc:
             return QueryReply(graph_seq=index.graph_seq, error=str(exc))
         return QueryReply(graph_seq=index.graph_seq, hits=hits)

@@ -88,7 +88,9 @@ class LaunchConfig(StrictModel):
     """Default restart policy."""
     alive_timeout_s: float = Field(120.0, gt=0)
     """How long a started service may take to announce itself before it counts as failed
-    (model loading on a cold machine takes a while)."""
+    (model loading on a cold machine takes a while). It does not run while the service's own
+    status reports say ``starting``: it is up and waits for what it needs (the query service
+    for a ``vl/embed`` on a machine started later)."""
     unresponsive_s: float = Field(15.0, gt=0)
     """A running service whose liveliness token has been gone this long (frozen, or cut off
     from the router past the link lease) is restarted under its policy."""

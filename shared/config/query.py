@@ -35,8 +35,21 @@ class QueryConfig(StrictModel):
     from ``keyframe_vl.vl``."""
     workers: int = Field(4, ge=1)
     """Threads answering queries concurrently."""
+    queue_size: int = Field(16, ge=1)
+    """Requests that may wait for a free worker; one more is answered "overloaded: ..." at
+    once instead of queueing, so a client under load hears it in milliseconds rather than
+    waiting out its timeout. 16 behind 4 workers, measured with benchmarks/query.py
+    --while-mapping --novel on this 2-core machine: 16 clients asking novel texts while
+    ``demo`` maps all fit (none overloaded, p99 545 ms against a 2 s time-out); 32 clients on
+    ``small`` get half their requests answered "overloaded" within 28 ms and none times out."""
     embed_cache_size: int = Field(1024, ge=0)
-    """Text query embeddings remembered by the service (0: ask ``vl/embed`` every time)."""
+    """Text query embeddings the service remembers, least recently used dropped first (0: ask
+    ``vl/embed`` every time). Clients repeat prompts; a remembered one is answered without the
+    ``vl/embed`` round trip. 1024 of 1024-d float32 is 4 MB."""
+    warmup_retry_s: float = Field(0.5, gt=0)
+    """The service declares itself alive (liveliness token, status ``running``) only once its
+    text-embedding path has answered a warm-up request; until then it asks again this often
+    (keyframe_vl declares ``vl/embed`` only when its models are loaded and warm)."""
     sync_wait_s: float = Field(1.0, ge=0)
     """A query arriving while the replica resynchronises waits this long for the snapshot,
     then is refused: the service never answers from a graph it knows is behind."""

@@ -41,6 +41,10 @@ class Envelope(Generic[M]):
     seq: int
     stamp: float
     schema_version: int = SCHEMA_VERSION
+    received: float | None = None
+    """``time.monotonic()`` when a queryable of this process took the request in, before it
+    waited for a worker (never on the wire; None where nothing recorded it). A request's
+    deadline is counted from here, so the sender's clock does not matter."""
 
 
 REGISTRY: dict[str, type[BaseModel]] = {}

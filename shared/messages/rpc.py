@@ -8,7 +8,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from shared.arrays import ArraySpec
-from shared.messages.base import METRES, Message, register
+from shared.messages.base import METRES, SECONDS, Message, register
 from shared.messages.frames import RGB
 from shared.messages.graph import Vec3
 from shared.messages.keyframes import Vector
@@ -66,6 +66,12 @@ class QueryRequest(Message):
     """Radius around center (m)."""
     gallery: Literal["max", "mean"] | None = None
     """Override the service's gallery scoring."""
+    deadline_s: Annotated[float | None, SECONDS] = Field(None, gt=0)
+    """Time budget (s), counted from when the service receives the request, so the client's
+    and the service's clocks need not agree. A request still waiting for a worker when it runs
+    out is answered with an error starting "deadline exceeded" and not worked on; the embedding
+    round trip and a wait for the replica to resynchronise are cut to what is left of it. None:
+    no deadline, the service's own time-outs apply. ``QueryClient`` sets it from its timeout."""
 
     @model_validator(mode="after")
     def _valid(self) -> QueryRequest:
@@ -102,6 +108,7 @@ class QueryReply(Message):
     graph_seq: int = Field(-1, ge=-1)
     """Graph version the answer comes from."""
     error: str | None = None
-    """Why the query was refused."""
+    """Why the query was refused; it starts with "deadline exceeded: " when the request's
+    ``deadline_s`` ran out before it could be answered."""
 
 QueryEmbedding = Annotated[np.ndarray, ArraySpec(("float32",), (None,), finite=True)]

@@ -97,8 +97,11 @@ class Bus(Protocol):
         *,
         workers: int = 1,
         capacity: int = 256,
+        on_drop: Callable[[], None] | None = None,
     ) -> Endpoint:
-        """Answer requests on ``key`` with ``handler``."""
+        """Answer requests on ``key`` with ``handler`` on ``workers`` threads. At most
+        ``capacity`` requests wait for a worker; one more is answered "overloaded" at once and
+        ``on_drop`` is told. The handler's envelope has ``received`` set when the bus knows it."""
         ...
 
     def request(self, key: str, body: BaseModel, reply_type: type[R], *, timeout: float) -> R:
@@ -219,7 +222,8 @@ class InProcessBus:
         return sub
 
     def serve(self, key: str, request_type: type[M], reply_type: type[R], handler: Callable[[Envelope[M]], R], *,
-              workers: int = 1, capacity: int = 256) -> _Queryable:  # fmt: skip
+              workers: int = 1, capacity: int = 256, on_drop: Callable[[], None] | None = None) -> _Queryable:  # fmt: skip
+        # Answered at once on the caller's thread: nothing ever waits, so nothing is dropped.
         if key in self._queryables:
             raise ValueError(f"{key}: a queryable is already declared here")
         q = self._queryables[key] = _Queryable(self, key, request_type, handler)

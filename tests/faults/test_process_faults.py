@@ -199,8 +199,11 @@ def test_router_restart_every_service_reconnects(small, tmp_path, free_port):
 
 def test_a_frozen_service_is_reported_and_restarted(tmp_path, free_port):
     """SIGSTOP the query service past the link lease: the Supervisor reports it unresponsive,
-    then restarts it under its policy."""
-    path = write_launch(tmp_path, free_port, [{"name": "router"}, {"name": "query"}], unresponsive_s=4.0, exit_when_finished=False)
+    then restarts it under its policy. The stand-in keyframe_vl of examples/ answers the query
+    service's warm-up: without a ``vl/embed`` it never declares itself alive."""
+    stand_in = [sys.executable, str(ROOT / "examples" / "external_keyframe_vl.py"), "--connect", f"tcp/127.0.0.1:{free_port}", "--robot", "robot0"]
+    services = [{"name": "router"}, {"name": "keyframe_vl", "command": stand_in}, {"name": "query"}]
+    path = write_launch(tmp_path, free_port, services, unresponsive_s=4.0, exit_when_finished=False)
     run = Run(path, None, None).start(watch=False)
     try:
         query = run.sup.procs["query"]

@@ -141,6 +141,47 @@ def test_the_status_table_shows_rate_drops_queue_and_progress(tmp_path):
     assert summary["tracker"]["status_file"] == str(status_path(plan.log_dir, "tracker"))
 
 
+def test_a_service_reporting_starting_is_not_timed_out_until_it_stops_saying_so(tmp_path):
+    # The query service waits for a vl/embed that may be on a machine started later: while its
+    # own reports say "starting", the launcher's alive time-out does not run.
+    plan = plan_launch(write_launch(tmp_path, [{"name": "query"}], alive_timeout_s=5.0), log_dir=tmp_path / "logs")
+    sup = Supervisor(plan, status=False)
+    sup._connecting = threading.Thread()  # never connects: liveliness and reports are faked below
+
+    class Running:
+        pid = 4242
+
+        def poll(self):
+            return None
+
+    class NoTokens:
+        def alive(self):
+            return set()
+
+    now = time.monotonic()
+    q = sup.procs["query"]
+    q.popen, q.state, q.started_at = Running(), "starting", now - 600
+    sup.watcher, sup._watching_since = NoTokens(), now - 600
+    latest = {"query": (_report("query", state="starting", pid=4242), 0.5)}
+
+    class Reports:
+        def get(self, name):
+            return latest.get(name)
+
+        def close(self):
+            pass
+
+    sup.reports = Reports()
+    sup.step()
+    assert q.state == "starting" and q.starting_seen >= now  # 600 s without a token, but it says why
+    latest["query"] = (_report("query", state="starting", pid=999), 0.5)  # an earlier run's report
+    sup.step()
+    assert q.state == "starting"  # it said so a moment ago: the time-out counts from then
+    q.starting_seen = now - 10
+    sup.step()
+    assert q.state == "backoff" and "not alive 5 s after start" in q.reason
+
+
 @pytest.mark.zenoh
 def test_a_crashing_service_is_restarted_then_given_up(tmp_path):
     path = write_launch(
@@ -300,7 +341,9 @@ def test_query_and_viewer_report_their_status_every_second_and_at_stop(tmp_path)
     try:
         reports = ReportLog(plan.system.transport.connect[0])
         deadline = time.monotonic() + 120
-        while not all(sup.procs[n].state == "alive" for n in ("query", "viewer")):
+        # No keyframe_vl in this launch: the query service reports "starting" (no vl/embed to
+        # warm up with) and never declares itself alive, the viewer does.
+        while not (sup.procs["viewer"].state == "alive" and sup.report("query") is not None):
             assert sup.error is None and time.monotonic() < deadline, sup.summary()
             time.sleep(0.2)
         time.sleep(4.5)
@@ -310,6 +353,7 @@ def test_query_and_viewer_report_their_status_every_second_and_at_stop(tmp_path)
         assert gaps["query"] <= MAX_REPORT_GAP_S and gaps["viewer"] <= MAX_REPORT_GAP_S, gaps
         # The launcher hears them too: its table has their figures, not dashes.
         assert sup.report("query") is not None and sup.report("query")[0].figures["synced"] is False
+        assert sup.report("query")[0].state == "starting" and sup.procs["query"].state == "starting"
         console = Console(width=300, record=True, file=__import__("io").StringIO())
         console.print(launch_table(sup))
         row = next(ln for ln in console.export_text().splitlines() if ln.startswith("│ query"))

@@ -51,6 +51,8 @@ log = logging.getLogger(__name__)
 
 CATEGORIES_FILE = "gt_categories.json"
 NAME = "simulated:all-MiniLM-L6-v2"
+WARMUP_TEXT = "a warm-up sentence"
+"""What :meth:`SimulatedVLEncoder.warm_up` embeds when its text encoder has no warm-up of its own."""
 _SEED_TAG = 0x51A7C11F
 """Keeps this backend's noise streams apart from other seeded simulations."""
 
@@ -172,6 +174,15 @@ class SimulatedVLEncoder:
                 ids = inst[y0:y1, x0:x1][mask[y0:y1, x0:x1]]
             out[j] = self._finish(self._mix(ids), (0, int(image.frame_index), j))
         return out
+
+    def warm_up(self) -> None:
+        """Load the text model now: the labels' embeddings usually come from the disk cache,
+        so without this the first novel query text would wait for the load."""
+        warm = getattr(self.text, "warm_up", None)
+        if warm is not None:
+            warm()
+        else:
+            self.text.encode([WARMUP_TEXT])
 
     def encode_text(self, texts: list[str]) -> Annotated[np.ndarray, "(N, 384) float32"]:
         texts = [str(t) for t in texts]

@@ -155,3 +155,46 @@ def test_embed_answers_within_timeout(system):
     again = request(client, key, EmbedRequest(text="armchair"), EmbedReply, robot_id="robot0", timeout=2.0)
     assert time.monotonic() - t0 < 2.0
     np.testing.assert_array_equal(again.body.embedding, rep.body.embedding)
+
+
+class _WarmingCore:
+    """A stand-in core that counts its warm-up and embeds every text the same."""
+
+    class encoder:  # noqa: N801 - stands in for an encoder object
+        name = "fake"
+        dim = 4
+
+    def __init__(self) -> None:
+        self.warmed = 0
+
+    def warm_up(self) -> None:
+        self.warmed += 1
+
+    def embed(self, req: EmbedRequest) -> EmbedReply:
+        return EmbedReply(embedding=np.ones(4, np.float32) / 2, model="fake")
+
+
+def test_alive_and_serving_vl_embed_only_once_the_models_are_warm():
+    from shared.transport import LivelinessWatcher
+
+    port = _free_port()
+    cfg = TrackGraphConfig.model_validate({"transport": {"mode": "peer", "connect": [], "listen": [f"tcp/127.0.0.1:{port}"], "shared_memory": False}})
+    core = _WarmingCore()
+    node = KeyframeVLNode(cfg, core=core, start=False)
+    client = open_session(TransportConfig(mode="peer", connect=[f"tcp/127.0.0.1:{port}"], shared_memory=False))
+    watcher = LivelinessWatcher(client, "trackgraph/robot0/alive/**")
+    key = Topics("robot0").vl_embed
+    try:
+        time.sleep(0.5)
+        assert node.book.report().state == "starting" and core.warmed == 0 and not watcher.alive()
+        with pytest.raises(TransportError):  # no vl/embed yet: nothing answers
+            request(client, key, EmbedRequest(text="chair"), EmbedReply, robot_id="robot0", timeout=0.5)
+        node.start()
+        assert core.warmed == 1 and node.book.report().state == "running"
+        assert watcher.wait_for("trackgraph/robot0/alive/keyframe_vl", timeout=5)
+        reply = request(client, key, EmbedRequest(text="chair"), EmbedReply, robot_id="robot0", timeout=5).body
+        assert reply.embedding is not None and "startup_s" in node.book.report().figures
+    finally:
+        watcher.close()
+        client.close()
+        node.close()

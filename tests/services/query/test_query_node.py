@@ -13,7 +13,8 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 
-from services.query.client import QueryClient, QueryRefused
+from services.keyframe_vl.embedder import WARMUP_TEXT
+from services.query.client import QueryClient, QueryRefused, deadline_for
 from services.query.node import QueryNode
 from services.router import run_router
 from shared.codec import encode
@@ -22,7 +23,13 @@ from shared.graph.scene import GraphReplica
 from shared.messages.graph import GraphDelta, GraphSnapshot, SegmentNode, SnapshotRequest
 from shared.messages.rpc import EmbedReply, EmbedRequest, QueryRequest
 from shared.topics import Topics
-from shared.transport import TypedPublisher, TypedQueryable, open_session
+from shared.transport import (
+    LivelinessWatcher,
+    TransportError,
+    TypedPublisher,
+    TypedQueryable,
+    open_session,
+)
 
 pytestmark = pytest.mark.zenoh
 
@@ -72,7 +79,8 @@ class FakeFusion:
 
 @pytest.fixture
 def system():
-    """A router, a fake fusion and a fake keyframe_vl (vl/embed); yields (cfg, fusion)."""
+    """A router, a fake fusion and a fake keyframe_vl (vl/embed); yields (cfg, fusion). Texts
+starting "slow" wait for ``fusion.embed_gate``; ``fusion.vl`` is the vl/embed queryable."""
     endpoint = f"tcp/127.0.0.1:{_free_port()}"
     cfg = TrackGraphConfig.model_validate({
         "transport": {"mode": "client", "connect": [endpoint], "shared_memory": False, "query_timeout_s": 2.0},
@@ -84,9 +92,15 @@ def system():
     time.sleep(0.3)
     session = open_session(cfg.transport)
     topics = Topics(cfg.robot_id)
+    gate = threading.Event()
+    gate.set()
 
     def embed(env) -> EmbedReply:
         req: EmbedRequest = env.body
+        if req.text.startswith("slow"):
+            gate.wait(10)  # a test holds the embedding back with fusion.embed_gate
+        if req.text == WARMUP_TEXT:  # the service's warm-up: any embedding will do
+            return EmbedReply(embedding=E[7], model="fake")
         word = req.text.split()[-1] if req.text else "plant"
         if word not in WORDS:
             return EmbedReply(model="fake", error=f"unknown word {word!r}")
@@ -94,11 +108,13 @@ def system():
 
     vl = TypedQueryable(session, topics.vl_embed, EmbedRequest, EmbedReply, embed, robot_id=cfg.robot_id, workers=2)
     fusion = FakeFusion(session, topics, cfg.robot_id)
+    fusion.embed_gate, fusion.vl, fusion.embed, fusion.session = gate, vl, embed, session
     try:
         yield cfg, fusion
     finally:
+        gate.set()
         fusion.close()
-        vl.close()
+        fusion.vl.close()
         session.close()
         stop.set()
         router.join(timeout=10)
@@ -198,3 +214,79 @@ def test_client_asks_fusion_for_the_whole_map_and_hears_why_not(system):
         fusion.refuse = "SnapshotRequest.whole_map: the whole map's mesh is 9 bytes, over the codec's limit"
         with pytest.raises(QueryRefused, match="whole_map: the whole map's mesh is 9 bytes"):
             client.snapshot(whole_map=True)
+
+
+def test_alive_only_once_vl_embed_answers_the_warm_up(system):
+    cfg, fusion = system
+    fusion.vl.close()  # keyframe_vl still loading its models
+    watcher = LivelinessWatcher(fusion.session, "trackgraph/robot0/alive/**")
+    node = QueryNode(cfg)
+    try:
+        time.sleep(1.5)  # three warm-up tries
+        assert "trackgraph/robot0/alive/query" not in watcher.alive() and node.book.report().state == "starting"
+        fusion.vl = TypedQueryable(fusion.session, Topics(cfg.robot_id).vl_embed, EmbedRequest, EmbedReply, fusion.embed, robot_id=cfg.robot_id)
+        assert watcher.wait_for("trackgraph/robot0/alive/query", timeout=5), node.stats()
+        report = node.book.report()
+        assert report.state == "running" and report.figures["warmup_s"] >= 1.5 and node.session.warmup_tries >= 3
+    finally:
+        node.close()
+        watcher.close()
+
+
+def test_overloaded_at_once_and_a_waiting_request_answered_at_its_deadline(system):
+    cfg, fusion = system
+    cfg = cfg.model_copy(update={"query": cfg.query.model_copy(update={"workers": 1, "queue_size": 1})})
+    fusion.add(seg(1, "chair"))
+    fusion.add(seg(2, "table"))
+    node = QueryNode(cfg)
+    clients = [QueryClient(cfg.transport, robot_id=cfg.robot_id, timeout_s=5.0) for _ in range(3)]
+    try:
+        assert wait(lambda: node.session.ready and node.sync.synced and node.sync.graph_seq == 2), node.stats()
+        fusion.embed_gate.clear()
+        with ThreadPoolExecutor(2) as pool:
+            busy = pool.submit(clients[0].query, "slow chair")  # takes the one worker
+            assert wait(lambda: node.session._slots._value == 0)
+            t0 = time.monotonic()
+            waiting = pool.submit(clients[1].ask, QueryRequest(text="table", deadline_s=0.5))  # the one queue place
+            assert wait(lambda: node.session._waiting == 1)
+            with pytest.raises(TransportError, match="overloaded: "):
+                clients[2].query("chair")
+            overloaded_after = time.monotonic() - t0
+            late = waiting.result(5)
+            late_after = time.monotonic() - t0
+            fusion.embed_gate.set()
+            assert [h.segment for h in busy.result(5)][:1] == [1]
+        assert overloaded_after < 0.5  # at once, while the queued one still waits
+        assert late.error.startswith("deadline exceeded: ") and 0.45 <= late_after < 1.5, (late.error, late_after)
+        assert [h.segment for h in clients[2].query("table", top_k=1)] == [2]  # free again
+        report = node.book.report()
+        assert (report.figures["overloaded"], report.figures["expired"]) == (1, 1)
+        assert {i.name: i.dropped for i in report.inputs}["query"] == 1
+    finally:
+        fusion.embed_gate.set()
+        for c in clients:
+            c.close()
+        node.close()
+
+
+def test_the_client_sends_a_deadline_from_its_timeout(system):
+    cfg, fusion = system
+    fusion.add(seg(1, "chair"))
+    node = QueryNode(cfg)
+    seen: list[float | None] = []
+    real = node.session.on_query
+
+    def spy(env):
+        seen.append(env.body.deadline_s)
+        assert env.received is not None and env.received <= time.monotonic()
+        return real(env)
+
+    node.queryable.handler = spy  # what the queryable hands each decoded request
+    try:
+        assert wait(lambda: node.session.ready and node.sync.synced), node.stats()
+        with QueryClient(cfg.transport, robot_id=cfg.robot_id, timeout_s=3.0) as client:
+            client.query("chair")
+            client.ask(QueryRequest(text="chair", deadline_s=1.25))
+        assert seen == [pytest.approx(deadline_for(3.0)), 1.25] and deadline_for(3.0) == pytest.approx(2.8)
+    finally:
+        node.close()

@@ -1,15 +1,23 @@
 """The query session over the in-process bus, without Zenoh: a late join asks fusion for a
 snapshot, a gap resynchronises with the deltas held meanwhile applied, queries are refused
-while the replica is out of sync, and the status book counts it all."""
+while the replica is out of sync, the status book counts it all; the session is alive only
+once its text-embedding path answered a warm-up, a request past its deadline is answered
+with an error and not worked on, and text embeddings are kept in a bounded LRU."""
 
 from __future__ import annotations
+
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
 
+from services.keyframe_vl.embedder import WARMUP_TEXT
 from services.query.session import QuerySession
 from shared.config import TrackGraphConfig
 from shared.graph.scene import GraphReplica
+from shared.messages.base import Envelope
 from shared.messages.graph import GraphDelta, GraphSnapshot, SegmentNode, SnapshotRequest
 from shared.messages.rpc import EmbedReply, EmbedRequest, QueryReply, QueryRequest
 from shared.runtime.bus import InProcessBus
@@ -51,6 +59,8 @@ class FakeFusion:
 
 
 def embed(env) -> EmbedReply:
+    if env.body.text == WARMUP_TEXT:  # the service's warm-up: any embedding will do
+        return EmbedReply(embedding=E[7], model="fake")
     word = env.body.text.split()[-1]
     if word not in WORDS:
         return EmbedReply(model="fake", error=f"unknown word {word!r}")
@@ -78,13 +88,14 @@ def inputs(session: QuerySession) -> dict:
 
 def test_late_join_asks_for_a_snapshot_and_refuses_until_then(system):
     bus, fusion, session = system
-    assert "trackgraph/robot0/alive/query" in bus.alive
+    assert "trackgraph/robot0/alive/query" not in bus.alive  # alive once the warm-up is answered
     fusion.add(seg(1, "chair"), publish=False)  # mapped before the query service existed
     fusion.add(seg(2, "table"), publish=False)
     reply = ask(bus, "chair")
     assert reply.error is not None and "no graph yet" in reply.error and reply.hits == []
 
     assert session.tick(0.0) is False  # fusion's queryable is not up: backoff
+    assert "trackgraph/robot0/alive/query" in bus.alive and session.book.report().state == "running"  # vl/embed answered
     assert session.tick(0.01) is None  # not due yet
     fusion.serve()
     assert session.tick(10.0) is True and session.sync.synced and session.sync.graph_seq == 2
@@ -95,7 +106,7 @@ def test_late_join_asks_for_a_snapshot_and_refuses_until_then(system):
     assert report.state == "running"
     f = report.figures
     assert (f["graph_seq"], f["synced"], f["segments"], f["snapshots"], f["queries"], f["refused"]) == (2, True, 2, 1, 2, 1)
-    assert report.published == {"graph_snapshot": 2, "vl_embed": 1}
+    assert report.published == {"graph_snapshot": 2, "vl_embed": 2}  # the warm-up, then "a red chair"
     assert inputs(session)["query"].processed == 2 and inputs(session)["graph_snapshot"].received == 1
     assert report.latency_p50_ms is not None
 
@@ -150,3 +161,214 @@ def test_refusals_carry_the_reason_and_a_bad_delta_is_counted(system, caplog):
     fusion.add(seg(2, "table"))
     bus.drain()
     assert inputs(session)["graph_delta"].rejected == 1 and session.book.report().errors == 1
+
+
+class Clock:
+    """A settable clock for the session (deadlines count in it)."""
+
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def query_env(text: str, *, received: float | None, **kw) -> Envelope[QueryRequest]:
+    return Envelope(body=QueryRequest(text=text, **kw), robot_id="robot0", seq=0, stamp=0.0, received=received)
+
+
+def test_alive_only_once_the_embedding_path_answers_the_warm_up():
+    bus = InProcessBus("robot0")
+    cfg = TrackGraphConfig.model_validate({"query": {"warmup_retry_s": 2.0}})
+    session = QuerySession(cfg, bus, sync_wait_s=0)
+    try:
+        assert session.tick(0.0) is False  # no fusion, and no vl/embed either: not ready
+        assert not session.ready and bus.alive == set() and session.book.report().state == "starting"
+        asked: list[str] = []
+
+        def slow_to_load(env) -> EmbedReply:
+            asked.append(env.body.text)
+            return embed(env)
+
+        bus.serve(TOPICS.vl_embed, EmbedRequest, EmbedReply, slow_to_load)
+        session.tick(1.0)
+        assert asked == []  # the next try is 2 s after the failed one
+        session.tick(2.0)
+        assert len(asked) == 1 and session.ready and "trackgraph/robot0/alive/query" in bus.alive
+        report = session.book.report()
+        assert report.state == "running" and report.figures["warmup_s"] is not None and session.warmup_tries == 2
+        session.tick(3.0)
+        assert len(asked) == 1  # once ready, no more warm-ups
+    finally:
+        session.close()
+        bus.close()
+    assert bus.alive == set()  # the token goes with the session
+
+
+def test_a_local_encoder_is_loaded_by_the_warm_up():
+    class Local:
+        warmed = 0
+
+        def warm_up(self) -> None:
+            self.warmed += 1
+
+        def embed(self, req: EmbedRequest) -> EmbedReply:
+            return EmbedReply(embedding=E[WORDS.index(req.text)], model="local")
+
+    bus = InProcessBus("robot0")
+    local = Local()
+    session = QuerySession(TrackGraphConfig(), bus, embedder=local, sync_wait_s=0)
+    try:
+        session.tick(0.0)
+        assert local.warmed == 1 and session.ready and "trackgraph/robot0/alive/query" in bus.alive
+    finally:
+        session.close()
+        bus.close()
+
+
+def test_a_request_past_its_deadline_is_answered_with_an_error_and_not_worked_on():
+    bus = InProcessBus("robot0")
+    embedded: list[str] = []
+
+    def counting(env) -> EmbedReply:
+        embedded.append(env.body.text)
+        return embed(env)
+
+    bus.serve(TOPICS.vl_embed, EmbedRequest, EmbedReply, counting)
+    fusion = FakeFusion(bus)
+    fusion.serve()
+    clock = Clock()
+    session = QuerySession(TrackGraphConfig(), bus, sync_wait_s=0, clock=clock)
+    try:
+        session.tick(clock.t)
+        fusion.add(seg(1, "chair"))
+        bus.drain()
+        embedded.clear()
+        # Waited 0.6 s for a worker with a 0.5 s budget: refused at once, nothing embedded.
+        late = session.on_query(query_env("chair", received=clock.t - 0.6, deadline_s=0.5))
+        assert late.error.startswith("deadline exceeded: waited 0.600 s") and late.hits == [] and embedded == []
+        # Within its budget it is answered; the budget counts from receipt, not the sender's stamp.
+        ok = session.on_query(query_env("chair", received=clock.t - 0.4, deadline_s=0.5))
+        assert ok.error is None and [h.segment for h in ok.hits] == [1] and embedded == ["chair"]
+        # No deadline: never expired, however long it waited.
+        assert session.on_query(query_env("chair", received=clock.t - 99.0)).error is None
+        f = session.book.report().figures
+        assert (f["expired"], f["refused"], f["queries"]) == (1, 1, 3)
+    finally:
+        session.close()
+        bus.close()
+
+
+def test_the_embedding_round_trip_is_cut_to_the_deadline():
+    bus = InProcessBus("robot0")
+    timeouts: list[float] = []
+    real_request = bus.request
+
+    def request(key, body, reply_type, *, timeout):
+        if key == TOPICS.vl_embed:
+            timeouts.append(timeout)
+        return real_request(key, body, reply_type, timeout=timeout)
+
+    bus.request = request
+    bus.serve(TOPICS.vl_embed, EmbedRequest, EmbedReply, embed)
+    fusion = FakeFusion(bus)
+    fusion.serve()
+    clock = Clock()
+    cfg = TrackGraphConfig.model_validate({"transport": {"query_timeout_s": 2.0}})
+    session = QuerySession(cfg, bus, sync_wait_s=0, clock=clock)
+    try:
+        session.tick(clock.t)
+        fusion.add(seg(1, "table"))
+        bus.drain()
+        timeouts.clear()
+        session.on_query(query_env("a table", received=clock.t - 0.7, deadline_s=1.0))
+        session.on_query(query_env("the table", received=clock.t, deadline_s=5.0))
+        assert timeouts == [pytest.approx(0.3), 2.0]  # what is left of 1 s; the service's own 2 s
+    finally:
+        session.close()
+        bus.close()
+
+
+def test_text_embeddings_are_kept_in_a_bounded_lru():
+    bus = InProcessBus("robot0")
+    embedded: list[str] = []
+
+    def counting(env) -> EmbedReply:
+        embedded.append(env.body.text)
+        return embed(env)
+
+    bus.serve(TOPICS.vl_embed, EmbedRequest, EmbedReply, counting)
+    fusion = FakeFusion(bus)
+    fusion.serve()
+    session = QuerySession(TrackGraphConfig.model_validate({"query": {"embed_cache_size": 2}}), bus, sync_wait_s=0)
+    try:
+        session.tick(0.0)
+        fusion.add(seg(1, "chair"))
+        bus.drain()
+        embedded.clear()
+        for text in ["chair", "table", "chair", "lamp", "chair", "table"]:
+            assert ask(bus, text).error is None
+        # "chair" stays (used last before "lamp" came), "table" was the least recently used.
+        assert embedded == ["chair", "table", "lamp", "table"]
+    finally:
+        session.close()
+        bus.close()
+
+
+def test_an_overloaded_answer_is_counted():
+    bus = InProcessBus("robot0")
+    seen: dict = {}
+    real_serve = bus.serve
+
+    def serve(key, *a, **kw):
+        if key == TOPICS.query:
+            seen.update(capacity=kw["capacity"], workers=kw["workers"], on_drop=kw["on_drop"])
+        return real_serve(key, *a, **kw)
+
+    bus.serve = serve
+    session = QuerySession(TrackGraphConfig.model_validate({"query": {"queue_size": 3, "workers": 2}}), bus, sync_wait_s=0)
+    try:
+        # A thread per worker and per queue place, none waiting in the queryable itself.
+        assert (seen["capacity"], seen["workers"]) == (0, 5)
+        seen["on_drop"]()  # what the queryable calls as it answers "overloaded"
+        report = session.book.report()
+        assert report.figures["overloaded"] == 1 and {i.name: i.dropped for i in report.inputs}["query"] == 1
+    finally:
+        session.close()
+        bus.close()
+
+
+def test_a_request_waiting_for_a_worker_is_answered_at_its_deadline():
+    bus = InProcessBus("robot0")
+    gate, working = threading.Event(), threading.Event()
+
+    def slow(env) -> EmbedReply:
+        if env.body.text == "slow chair":
+            working.set()
+            gate.wait(5)
+        return embed(env)
+
+    bus.serve(TOPICS.vl_embed, EmbedRequest, EmbedReply, slow)
+    fusion = FakeFusion(bus)
+    fusion.serve()
+    session = QuerySession(TrackGraphConfig.model_validate({"query": {"workers": 1}}), bus, sync_wait_s=0)
+    try:
+        session.tick(0.0)
+        fusion.add(seg(1, "chair"))
+        bus.drain()
+        with ThreadPoolExecutor(1) as pool:
+            busy = pool.submit(session.on_query, query_env("slow chair", received=None))
+            assert working.wait(5)  # the one worker is taken
+            t0 = time.monotonic()
+            late = session.on_query(query_env("chair", received=t0, deadline_s=0.3))
+            took = time.monotonic() - t0
+            gate.set()
+            assert busy.result(5).error is None
+        assert late.error.startswith("deadline exceeded: waited 0.3") and late.error.endswith("not worked on"), late.error
+        assert 0.29 <= took < 1.0, took  # answered when the budget ran out, not when the worker came free
+        assert session.on_query(query_env("chair", received=time.monotonic(), deadline_s=0.3)).error is None
+        assert session.book.report().figures["expired"] == 1
+    finally:
+        gate.set()
+        session.close()
+        bus.close()

@@ -133,3 +133,28 @@ def test_bad_ground_truth_is_named(tmp_path):
     bad.write_text(json.dumps({"dataset": {"samples": [_sample(0, [])]}}))
     with pytest.raises(ValueError, match="no object"):
         make_vl_encoder(VLEncoderConfig(backend="simulated", ground_truth=str(tmp_path)))
+
+
+def test_warm_up_loads_the_text_model_past_the_disk_cache(gt_dir):
+    enc = _encoder(gt_dir)
+    enc.text._model = None  # the labels' embeddings came from the disk cache: nothing loaded
+    enc.warm_up()
+    assert enc.text._model is not None  # the first novel query text finds the model loaded
+
+    class Plain:  # a text encoder without a warm-up of its own: one text goes through it
+        dim = 384
+
+        def __init__(self) -> None:
+            self.texts: list[str] = []
+
+        def encode(self, texts):
+            self.texts += texts
+            return np.ones((len(texts), 384), np.float32)
+
+    from services.keyframe_vl.encoders.simulated import WARMUP_TEXT, SimulatedVLEncoder
+
+    plain = Plain()
+    sim = SimulatedVLEncoder(gt_dir, text_encoder=plain, source=StaticGroundTruth({}))
+    plain.texts.clear()
+    sim.warm_up()
+    assert plain.texts == [WARMUP_TEXT]
