@@ -155,7 +155,10 @@ def test_fusion_killed_mid_run_and_during_a_snapshot_write_loses_nothing(small, 
     from shared.graph.store import MapStore
 
     out = tmp_path / "map"
-    path = write_launch(tmp_path, free_port, pipeline(), overrides={"fusion": {"snapshot_interval_s": 1.0}})
+    # The tracker waits for every keyframe's masks however long a restart's load delays them:
+    # the comparison is of fusion's map, not of the tracker under load.
+    overrides = {"fusion": {"snapshot_interval_s": 1.0}, "tracker": {"keyframe_timeout_s": 60.0}}
+    path = write_launch(tmp_path, free_port, pipeline(), overrides=overrides)
     run = Run(path, small, out).start()
     snapshots = out / "graph" / "snapshots"
     try:
