@@ -8,17 +8,28 @@ With a :class:`~shared.graph.store.MapStore` and a map folder it also keeps the 
 resumes from the newest snapshot, saves one every ``fusion.snapshot_interval_s``, and at the
 end saves the whole map with the mesh, the OpenLex3D files and ``run.json``. Without
 (``trackgraph map``), the caller writes the map.
+
+On disk, every frame, feature message and end of sequence it accepts goes to the write-ahead
+:class:`~services.fusion.journal.Journal` before it is applied and acknowledged; a snapshot
+cuts the journal, and a resume replays it after the snapshot through the same handlers, so
+a killed fusion comes back with everything it acknowledged. Acks carry fusion's ``epoch`` (a
+number drawn at start) and ``features_through``; the tracker keeps what is not acknowledged
+and sends it again to a new epoch. Feature messages are applied once per ``serial``.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import secrets
 import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+
+from services.fusion.journal import FIRST, Journal, JournalError, Record
 from shared.config.root import TrackGraphConfig
 from shared.config.transport import CodecConfig
 from shared.graph.store import MapStore, StoreError
@@ -51,6 +62,10 @@ def mesh_over_limits(mesh: MeshChunk, codec: CodecConfig) -> str | None:
 END_GRACE_S = 15.0
 """After ``tracks/end``, how long fusion waits for announced messages still on their way."""
 
+WATERMARK_S = 1.0
+"""How often fusion repeats its newest ack while nothing new comes: a restarted fusion
+announces its epoch even while the source waits, and late feature messages get acknowledged."""
+
 
 class FusionSession(Session):
     """A :class:`~services.fusion.core.FusionCore` on a bus, and optionally on disk in ``out``."""
@@ -60,6 +75,7 @@ class FusionSession(Session):
     def __init__(
         self, bus: Bus, cfg: TrackGraphConfig, core, *, store: MapStore | None = None, out: Path | None = None,
         resume: bool = False, clock: Callable[[], float] = time.monotonic, inbox: Inbox | None = None,
+        epoch: int | None = None,
     ) -> None:  # fmt: skip
         super().__init__(bus, clock=clock, inbox=inbox)
         if store is not None and out is None:
@@ -68,16 +84,33 @@ class FusionSession(Session):
         self.core = core
         self.store = store
         self.out = None if out is None else Path(out)
+        self.epoch = secrets.randbits(62) if epoch is None else int(epoch)
+        """Drawn at start: in every ack, so the tracker sees a restart."""
         self.resumed_from: str | None = None
-        if resume and store is not None and store.latest_name() is not None:
-            state = store.load()
-            core.load_state_dict(state.extra, state.snapshot)
-            self.resumed_from = str(state.path)
-            log.info("resumed from %s at frame %d (graph %d)", state.path, core.last_frame_index, core.graph.graph_seq)
         self.finished = threading.Event()
         self.end: EndOfSequence | None = None
         self._end_at = 0.0
         self.features_in = 0
+        """Feature messages in the map (across restarts: saved with each snapshot)."""
+        self.features_next = 0
+        """One past the highest feature ``serial`` applied: lower ones are duplicates."""
+        self.features_duplicate = 0
+        self.replayed: dict[str, int] = {}
+        """Journal records replayed at resume, per kind."""
+        self.journal_torn = 0
+        """Journal records dropped at resume (torn by a crash mid-write, or damaged)."""
+        self._replaying = False
+        self._last_ack_at = -1e9
+        jcfg = cfg.fusion.journal
+        self.journal = Journal(store.root / "journal", jcfg, clock=clock) if store is not None and jcfg.enabled else None
+        base: str | None = None
+        if resume and store is not None and store.latest_name() is not None:
+            state = store.load()
+            core.load_state_dict(state.extra, state.snapshot)
+            self._load_session_state(state.extra.get("fusion_session"))
+            self.resumed_from = str(state.path)
+            base = state.path.name
+            log.info("resumed from %s at frame %d (graph %d)", state.path, core.last_frame_index, core.graph.graph_seq)
         self.frames = 0
         """Frames this process fused (``core.frames`` counts those of the whole map)."""
         self.duplicates = 0
@@ -96,7 +129,77 @@ class FusionSession(Session):
         self.subscribe("tracks_frame", TrackedFrame, self._on_frame, capacity=16, queued=True)
         self.subscribe("tracks_features", TrackFeatures, self._on_features, capacity=64, queued=True)
         self.subscribe("tracks_end", EndOfSequence, self._on_end, capacity=4, queued=True)
+        if self.journal is not None:
+            if resume:
+                self._replay(base)
+            else:
+                self.journal.reset()
         self._refresh()
+
+    # ---------------------------------------------------------------- journal
+
+    def _replay(self, base: str | None) -> None:
+        """What the journal holds after snapshot ``base`` (None: from the empty map), through
+        the live handlers; then appends go on in the newest file."""
+        assert self.journal is not None
+        records, stats = self.journal.replay(base)
+        self.journal_torn = stats.torn
+        self._replaying = True
+        try:
+            with self.lock:
+                for rec in records:
+                    self._apply_record(rec)
+        finally:
+            self._replaying = False
+        files = [n for n in self.journal.files() if base is None or int(n) >= int(base)]
+        self.journal.open(files[-1] if files else (base or FIRST))
+        if records or stats.torn:
+            log.info(
+                "journal: replayed %d frames, %d feature messages, %d ends from %d files after %s; %d torn or damaged records dropped (%d bytes)",
+                self.replayed.get("frame", 0), self.replayed.get("features", 0), self.replayed.get("end", 0), stats.files,
+                base or "the empty map", stats.torn, stats.torn_bytes,
+            )  # fmt: skip
+        self._watermark(self.clock())
+
+    def _apply_record(self, rec: Record) -> None:
+        self.replayed[rec.kind] = self.replayed.get(rec.kind, 0) + 1
+        if rec.kind == "frame":
+            self._on_frame(rec.body)
+        elif rec.kind == "features":
+            self._on_features(rec.body)
+        else:
+            self._on_end(rec.body)
+
+    def _journal(self, kind: str, body) -> None:
+        """Write-ahead: on disk (with the OS) before it is applied and acknowledged. Not
+        while replaying what the journal already holds."""
+        if self.journal is None or self._replaying:
+            return
+        try:
+            self.journal.append(kind, body)
+        except JournalError as exc:
+            # the map goes on; what comes now is only as safe as the next snapshot
+            self.book.error()
+            log.error("%s", exc)
+
+    def _session_state(self) -> dict:
+        return {"features": np.asarray([self.features_in, self.features_next], np.int64)}
+
+    def _load_session_state(self, state: dict | None) -> None:
+        if state is None:  # a snapshot from before the journal
+            return
+        self.features_in, self.features_next = (int(x) for x in np.asarray(state["features"]))
+
+    def _ack(self, frame_index: int, now: float) -> None:
+        if self._replaying:
+            return
+        self._last_ack_at = now
+        self.acks.put(FrameAck(frame_index=frame_index, service="fusion", epoch=self.epoch, features_through=self.features_next))
+
+    def _watermark(self, now: float) -> None:
+        """The newest ack again, with the epoch and ``features_through`` as they are now."""
+        if self.core.last_frame_index >= 0:
+            self._ack(self.core.last_frame_index, now)
 
     # ---------------------------------------------------------------- inputs
 
@@ -110,13 +213,15 @@ class FusionSession(Session):
             else:
                 if self._first_frame_at is None:
                     self._first_frame_at = t0
+                self._journal("frame", tf)
                 delta = self.core.add_frame(tf)
                 self.frames += 1
                 self._last_frame_at = self.clock()
                 if delta is not None:
                     self.deltas.put(delta)
                 self.book.work_done(max(self._last_frame_at - t0, 0.0))
-                self._maybe_save(self._last_frame_at)
+                if not self._replaying:
+                    self._maybe_save(self._last_frame_at)
             self.book.count("tracks_frame", "processed")
         except Exception:  # noqa: BLE001 - one bad frame must not stop the map
             self.book.count("tracks_frame", "rejected")
@@ -125,7 +230,7 @@ class FusionSession(Session):
         finally:
             # fused, already in the map, or failed: a lossless source waits for it
             try:
-                self.acks.put(FrameAck(frame_index=k, service="fusion"))
+                self._ack(k, self.clock())
             finally:
                 self._check_end(self.clock())
                 self._refresh()
@@ -133,13 +238,22 @@ class FusionSession(Session):
 
     def _on_features(self, msg: TrackFeatures) -> None:
         try:
+            if msg.serial is not None and msg.serial < self.features_next:
+                self.features_duplicate += 1  # sent again after a restart, and already in
+                return
+            self._journal("features", msg)
             self.core.add_track_features(msg)
             self.features_in += 1
+            if msg.serial is not None:
+                self.features_next = msg.serial + 1
         finally:
             self._check_end(self.clock())
             self._refresh()
 
     def _on_end(self, msg: EndOfSequence) -> None:
+        if self.end == msg:
+            return  # sent again after a restart (or replayed): already waited for
+        self._journal("end", msg)
         self.end, self._end_at = msg, self.clock()
         self.book.progress(expected=msg.frames_published)
         self._check_end(self._end_at)
@@ -163,7 +277,7 @@ class FusionSession(Session):
         end = self.end
         if end is None or self.finished.is_set():
             return
-        if self.queued("tracks_frame", "tracks_features"):
+        if self._replaying or self.queued("tracks_frame", "tracks_features"):
             return
         frames_in = self.core.last_frame_index >= end.last_frame_index
         feats_in = end.track_features_published is None or self.features_in >= end.track_features_published
@@ -183,12 +297,18 @@ class FusionSession(Session):
         self.deltas.put(self.core.finish())
         if self.store is not None:
             self.save(export=True)
+        self._watermark(self.clock())  # the last feature messages acknowledged too
         self.finished.set()
         self.book.set_state("finished")
         log.info("sequence finished at frame %d: %d segments", self.core.last_frame_index, len(self.core.segments.segments))
 
     def _maybe_save(self, now: float) -> None:
-        if self.store is not None and self.frames > self._saved_frames and now - self._last_save >= self.cfg.fusion.snapshot_interval_s:
+        if self.store is None or self.frames <= self._saved_frames:
+            return
+        full = self.journal is not None and self.journal.bytes > self.cfg.fusion.journal.max_bytes
+        if full:
+            log.info("journal past fusion.journal.max_bytes (%d bytes): a snapshot now", self.journal.bytes)
+        if full or now - self._last_save >= self.cfg.fusion.snapshot_interval_s:
             self.save()
 
     def save(self, export: bool = False) -> None:
@@ -202,7 +322,11 @@ class FusionSession(Session):
         with self.lock:
             try:
                 snapshot = self.core.snapshot(with_mesh=True, whole_map=export)
-                self.store.save(snapshot, extra_state=self.core.state_dict())
+                folder = self.store.save(snapshot, extra_state={**self.core.state_dict(), "fusion_session": self._session_state()})
+                if self.journal is not None:
+                    # everything appended so far is in the snapshot: later records go to its file
+                    names = self.store.names()
+                    self.journal.cut(folder.name, names[0] if names else None)
                 if export:
                     export_map(self.out, self.core)
                     seconds = self.clock() - (self._first_frame_at or self.clock())
@@ -213,7 +337,7 @@ class FusionSession(Session):
                     summary["fused_seconds"] = round((self._last_frame_at or 0.0) - (self._first_frame_at or 0.0), 3)
                     summary.update(self.delivery())
                     atomic_write_text(self.out / "run.json", json.dumps(summary, indent=2))
-            except (StoreError, OSError) as exc:
+            except (StoreError, OSError, JournalError) as exc:
                 self.book.error()
                 log.error("snapshot not written: %s", exc)
             self._last_save = self.clock()
@@ -232,6 +356,11 @@ class FusionSession(Session):
             "frames_lost": lost,
             "frames_duplicate": self.duplicates,
             "resumed_from": self.resumed_from,
+            "features_in_map": self.features_in,
+            "features_duplicate": self.features_duplicate,
+            "journal_replayed": dict(self.replayed),
+            "journal_torn": self.journal_torn,
+            "journal": None if self.journal is None else self.journal.stats(),
         }
 
     # ---------------------------------------------------------------- time, status, close
@@ -242,6 +371,10 @@ class FusionSession(Session):
             try:
                 self._check_end(now)
                 self._maybe_save(now)
+                if self.journal is not None and self.journal.due(now):
+                    self.journal.sync(now)
+                if now - self._last_ack_at >= WATERMARK_S and not self.finished.is_set():
+                    self._watermark(now)
             except Exception:  # noqa: BLE001 - the next tick tries again
                 self.book.error()
                 log.exception("fusion: tick failed")
@@ -255,6 +388,8 @@ class FusionSession(Session):
         book.figure("duplicates", self.duplicates)
         book.figure("graph_seq", self.core.graph.graph_seq)
         book.figure("finished", self.finished.is_set())
+        if self.journal is not None:
+            book.figure("journal", {"records": self.journal.appended, "bytes": self.journal.bytes, "torn_at_resume": self.journal_torn})
 
     def close(self, save: bool = True) -> None:
         """Close the endpoints; with ``save``, keep what was fused since the last snapshot. A
@@ -263,3 +398,5 @@ class FusionSession(Session):
         super().close()
         if save and self.store is not None and self.frames and not self.finished.is_set():
             self.save()
+        if self.journal is not None:
+            self.journal.close()

@@ -15,6 +15,10 @@ recovers when masks come back.
 
 With ``wait_for_masks`` a keyframe is not ended until its masks are in or it expired: the
 frames after it are held here meanwhile (never waited for), and released in order.
+
+What goes to fusion is kept until fusion acknowledges it (:mod:`services.tracker.resend`) and
+sent again to a restarted fusion, the end of the sequence after it; feature messages carry a
+``serial`` so fusion applies each once.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from collections.abc import Callable
 from typing import Any
 
 from services.tracker.pace import KeyframeLedger
+from services.tracker.resend import Unacked
 from shared.config.root import TrackGraphConfig
 from shared.messages.frames import EndOfSequence, Frame, FrameAck, TrackedFrame
 from shared.messages.keyframes import KeyframeMasks, KeyframeRequest, MaskFeatures, TrackFeatures
@@ -62,6 +67,12 @@ class TrackerSession(Session):
         self.hold_capacity = 1 if live else capacity
         self.live = live
         self.keyframes = KeyframeLedger()
+        self.unacked = Unacked(cfg.tracker.resend_frames, cfg.tracker.resend_after_s, on_timeout=not live)
+        """Sent to fusion and not acknowledged: sent again after a fusion restart."""
+        self._serial = 0
+        """The next feature message's ``serial``: how many distinct ones went out."""
+        self._sent_end: EndOfSequence | None = None
+        """The ``tracks/end`` sent, to send again behind a resend."""
         self.pending: dict[int, float] = {}
         """Keyframes asked for and not answered: frame index -> time asked."""
         self.awaiting_features: dict[int, float] = {}
@@ -91,13 +102,44 @@ class TrackerSession(Session):
         self.subscribe("keyframe_masks", KeyframeMasks, self._on_masks, capacity=16)
         self.subscribe("keyframe_features", MaskFeatures, self._on_features, capacity=16)
         self.subscribe("end_of_sequence", EndOfSequence, self._on_end, capacity=4, queued=True)
+        self.subscribe("frame_ack", FrameAck, self._on_ack, capacity=256)
         self._refresh()
+
+    # ---------------------------------------------------------------- to fusion, kept until acknowledged
+
+    def _send_features(self, feats: TrackFeatures) -> None:
+        feats = feats.model_copy(update={"serial": self._serial})
+        self._serial += 1
+        self.features.put(feats)
+        self.unacked.sent(feats, self.clock())
+
+    def _send_tracked(self, tracked: TrackedFrame) -> None:
+        self.tracked.put(tracked)
+        self.unacked.sent(tracked, self.clock())
+
+    def _on_ack(self, msg: FrameAck) -> None:
+        if msg.service != "fusion":
+            return None  # the tracker's own, and other stages'
+        if self.unacked.ack(msg):
+            log.info("fusion restarted (epoch %d): sending again the %d messages it has not acknowledged", msg.epoch, len(self.unacked))
+            self._resend(self.clock())
+        self._refresh()
+
+    def _resend(self, now: float) -> None:
+        for body in self.unacked.pending(now):
+            if isinstance(body, TrackedFrame):
+                self.tracked.put(body)
+            else:
+                self.features.put(body)
+        if self._sent_end is not None:
+            self.ends.put(self._sent_end)
 
     # ---------------------------------------------------------------- frames
 
     def _on_frame(self, frame: Frame) -> object:
         if self.book.state == "finished":
             self.book.set_state("running")  # the next sequence
+            self._sent_end = None
         if self._open is not None or self.held:
             self._hold(frame)
         else:
@@ -144,8 +186,8 @@ class TrackerSession(Session):
             tracked = self.core.end_frame()
             feats = self.core.take_track_features(frame.frame_index)
             if feats is not None:
-                self.features.put(feats)
-            self.tracked.put(tracked)
+                self._send_features(feats)
+            self._send_tracked(tracked)
         except Exception:  # noqa: BLE001
             self._failed(frame)
             return
@@ -233,7 +275,7 @@ class TrackerSession(Session):
             # At once, not with the next frame: after the last keyframe there is none.
             feats = self.core.take_track_features(k)
             if feats is not None:
-                self.features.put(feats)
+                self._send_features(feats)
 
     def _expire(self, now: float) -> None:
         for k, t in list(self.pending.items()):
@@ -267,9 +309,10 @@ class TrackerSession(Session):
         caught_up = self._last_handled >= self._end.last_frame_index or now - self._end_at > self.timeout_s
         if not caught_up or self.pending or self.awaiting_features or self._open is not None or self.held or self.queued("frames"):
             return
-        end = self._end.model_copy(update={"last_frame_index": self._last_index, "track_features_published": self.features.seq})
+        end = self._end.model_copy(update={"last_frame_index": self._last_index, "track_features_published": self._serial})
         self.ends.put(end)
-        log.info("sequence ended: %d frames tracked, last %d, %d feature messages", self.frames, self._last_index, self.features.seq)
+        self._sent_end = end
+        log.info("sequence ended: %d frames tracked, last %d, %d feature messages", self.frames, self._last_index, self._serial)
         self._end = None
         self.book.set_state("finished")
 
@@ -283,6 +326,9 @@ class TrackerSession(Session):
                 self._expire(now)
                 self._release()
                 self._maybe_end(now)
+                if self.unacked.due(now):
+                    log.warning("fusion has not acknowledged frames for %.1f s: sending again the %d messages it has not", self.unacked.resend_after_s, len(self.unacked))
+                    self._resend(now)
             except Exception:  # noqa: BLE001 - the next tick tries again
                 self.book.error()
                 log.exception("tracker: tick failed")
@@ -297,3 +343,4 @@ class TrackerSession(Session):
         book.figure("pending_keyframes", len(self.pending))
         book.figure("keyframes", self.keyframes.as_dict())
         book.figure("held", len(self.held) + (self._open is not None))
+        book.figure("unacked", self.unacked.as_dict())

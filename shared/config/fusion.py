@@ -108,6 +108,27 @@ class GraphConfig(StrictModel):
     """Free-space components smaller than this are not rooms."""
 
 
+class JournalConfig(StrictModel):
+    """Fusion's write-ahead journal (not in the paper; docs/architecture.md, "Durability"):
+    every tracked frame and track-feature message the fusion service accepts is appended
+    beside its snapshots before it is acknowledged, and replayed after the newest good
+    snapshot on ``--resume``, so a SIGKILL loses nothing the tracker was told is safe."""
+
+    enabled: bool = True
+    """Keep the journal (the fusion service only: ``trackgraph map`` writes no snapshots
+    while it runs and has nothing to replay)."""
+    fsync_interval_s: float = Field(1.0, ge=0)
+    """Every record reaches the operating system before its ack, which a killed process
+    cannot lose; it is forced to the disk (fsync) at most this long after, against a power
+    cut. 0: fsync every record (a few ms each on an SD card or eMMC)."""
+    max_bytes: int = Field(1 << 30, gt=0)
+    """Bound on the journal since the last snapshot: when it passes this, fusion takes a
+    snapshot at once, which cuts the journal."""
+    zstd_level: int = Field(1, ge=1, le=19)
+    """zstd level of each record. 1: the frames' depth and labels are already delta- or
+    run-coded, and higher levels cost several times the time for a few percent."""
+
+
 class FusionConfig(StrictModel):
     """The fusion service and ``trackgraph map``."""
 
@@ -125,3 +146,5 @@ class FusionConfig(StrictModel):
     """Mesh chunks ride in every Nth graph delta; segments ride in every one."""
     snapshot_interval_s: float = Field(30.0, gt=0)
     """Seconds between on-disk snapshots of the graph."""
+    journal: JournalConfig = Field(default_factory=JournalConfig)
+    """The write-ahead journal between snapshots."""

@@ -96,6 +96,15 @@ class TrackerConfig(StrictModel):
     """Hold each keyframe until its masks arrive (up to ``keyframe_timeout_s``) before
     emitting it: lossless replay then gives the in-process result. False never waits, as a
     live robot should: the keyframe goes out propagated and is corrected on arrival."""
+    resend_frames: int = Field(32, ge=0)
+    """Tracked frames (with the track-feature messages between them) kept until fusion
+    acknowledges them, and sent again when a restarted fusion announces itself or after
+    ``resend_after_s``, so nothing in flight at a fusion crash is lost. Lossless pacing holds
+    the source within ``source.window_frames`` of fusion, so about that many wait at most;
+    past this bound the oldest is let go (counted). 0: keep none."""
+    resend_after_s: float = Field(5.0, gt=0)
+    """A frame fusion has not acknowledged after this long is sent again, with everything
+    after it (a message lost on the link, a fusion restarted before its first ack)."""
     history_frames: int = Field(48, ge=1)
     """Recent feature maps kept to re-propagate when keyframe masks arrive late."""
     oracle_retire_frames: int = Field(30, ge=0)

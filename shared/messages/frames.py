@@ -88,6 +88,12 @@ class FrameAck(Message):
     """The frame done with."""
     service: str = Field(min_length=1, max_length=32)
     """Who is done with it (``tracker``, ``fusion``)."""
+    epoch: int | None = Field(None, ge=0)
+    """fusion's acks: a number drawn when the fusion process started. A new one tells the
+    tracker that fusion restarted, so it sends again what that fusion has not acknowledged."""
+    features_through: int | None = Field(None, ge=0)
+    """fusion's acks: every ``tracks/features`` message with a ``serial`` below this is in
+    fusion's journal (or its map), so the tracker may let it go."""
 
 
 class TrackObservation(Message):

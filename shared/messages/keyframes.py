@@ -113,3 +113,7 @@ class TrackFeatures(Message):
     """Changed tracks."""
     retired: list[int] = Field(default_factory=list)
     """Tracks retired at this frame."""
+    serial: int | None = Field(None, ge=0)
+    """The tracker's running number of this message (0, 1, ... in the order sent). A message
+    sent again after a fusion restart keeps it, so fusion applies each one once. None from a
+    sender that never sends again."""
