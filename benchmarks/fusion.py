@@ -27,7 +27,9 @@ blocks, the volumes' memory (Open3D preallocates: capacity x bytes per block) an
 process's peak RSS, and an extrapolation of the volume memory to a Replica room. The first
 frame of each volume is untimed (numba compilation or cache load, first allocations). The
 process's peak RSS includes the decoded frames and libraries; the volume memory is the part
-that grows with the map. Results go to ``benchmarks/out/fusion.json`` and a table on stdout.
+that grows with the map. Then fusion's write-ahead journal (``services.fusion.journal``):
+ms and bytes per tracked-frame record on the first 60 frames, at their resolution and scaled
+to Replica's 1200x680. Results go to ``benchmarks/out/fusion.json`` and tables on stdout.
 """
 
 from __future__ import annotations
@@ -316,6 +318,53 @@ def run_voxel(voxel: float, frames: Any, backend: str) -> dict:
     }
 
 
+def run_journal(frames: Any, limit: int = 60) -> dict:
+    """fusion's write-ahead journal on these frames (services.fusion.journal, the default
+    config: zstd level 1, fsync at most once a second): ms and bytes per TrackedFrame record,
+    at the frames' resolution and scaled to Replica's 1200x680 (nearest neighbour)."""
+    import tempfile
+
+    from services.fusion.journal import Journal
+    from shared.config.fusion import JournalConfig
+    from shared.messages.frames import Frame, TrackedFrame
+
+    def record(depth, rgb, tracks, K, T, i, scale=None):
+        d = np.clip(depth * 1000.0, 0, 65535).astype(np.uint16)
+        if scale is not None:
+            h, w = scale
+            ys = (np.arange(h) * d.shape[0] // h)[:, None]
+            xs = (np.arange(w) * d.shape[1] // w)[None, :]
+            d, rgb, tracks = d[ys, xs], rgb[ys, xs], tracks[ys, xs]
+            K = K.model_copy(update={"fx": K.fx * w / K.width, "fy": K.fy * h / K.height, "cx": K.cx * w / K.width,
+                                     "cy": K.cy * h / K.height, "width": w, "height": h})  # fmt: skip
+        fr = Frame(frame_index=i, rgb=np.ascontiguousarray(rgb), depth=np.ascontiguousarray(d), depth_scale=1000.0, intrinsics=K, T_world_cam=T)
+        conf = np.full(tracks.shape, 200, np.uint8)
+        return TrackedFrame(frame=fr, track_ids=np.ascontiguousarray(tracks), tracks=[], confidence=conf)
+
+    out = {}
+    for label, scale in (("native", None), ("replica_1200x680", (680, 1200))):
+        with tempfile.TemporaryDirectory() as tmp:
+            j = Journal(Path(tmp) / "journal", JournalConfig())
+            j.reset()
+            ms, sizes, raw = [], [], 0
+            for i, (depth, rgb, tracks, K, T) in enumerate(frames()):
+                if i >= limit:
+                    break
+                tf = record(depth, rgb, tracks, K, T, i, scale)
+                t0 = time.perf_counter()
+                n = j.append("frame", tf)
+                ms.append((time.perf_counter() - t0) * 1e3)
+                sizes.append(n)
+                raw = tf.frame.rgb.nbytes + tf.frame.depth.nbytes + tf.track_ids.nbytes + tf.confidence.nbytes
+            j.close()
+            out[label] = {
+                "resolution": list(tf.frame.depth.shape[::-1]), "records": len(ms),
+                "ms_median": statistics.median(ms), "ms_p90": float(np.percentile(ms, 90)),
+                "bytes_median": int(statistics.median(sizes)), "raw_bytes": raw, "ratio": raw / statistics.median(sizes),
+            }  # fmt: skip
+    return out
+
+
 def machine_info() -> dict:
     try:
         import numba
@@ -391,6 +440,8 @@ def main(argv: list[str] | None = None) -> int:
     for voxel in VOXEL_SIZES:
         log.info("voxel %.0f cm: %d frames", voxel * 100, n)
         rows.append(run_voxel(voxel, frames, args.backend))
+    log.info("journal: %d frames", min(n, 60))
+    journal = run_journal(frames)
     result = {
         "benchmark": "fusion",
         "timestamp": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
@@ -401,6 +452,7 @@ def main(argv: list[str] | None = None) -> int:
         "ratio_target_3cm": RATIO_TARGET,
         "replica_room_surface_m2_assumed": REPLICA_ROOM_SURFACE_M2,
         "rows": rows,
+        "journal": journal,
         "peak_rss_mb": rss_mb(),
         "wall_s": time.monotonic() - started,
         "machine": machine_info(),
@@ -408,6 +460,11 @@ def main(argv: list[str] | None = None) -> int:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2))
     print_table(rows, source)
+    print("\nwrite-ahead journal, per TrackedFrame record (zstd 1, fsync <= 1/s):")
+    print(f"{'resolution':>12} {'ms median':>10} {'ms p90':>8} {'KB':>8} {'raw KB':>8} {'ratio':>6}")
+    for row in journal.values():
+        w, h = row["resolution"]
+        print(f"{w:>7}x{h:<4} {row['ms_median']:>10.2f} {row['ms_p90']:>8.2f} {row['bytes_median'] / 1e3:>8.0f} {row['raw_bytes'] / 1e3:>8.0f} {row['ratio']:>6.2f}")
     print(f"wrote {args.out}")
     return 0
 
