@@ -45,6 +45,7 @@ from pydantic import BaseModel
 from shared.codec import CodecError, decode, encode
 from shared.config.fusion import JournalConfig
 from shared.config.transport import CodecConfig
+from shared.io import fsync_dir
 from shared.messages.frames import EndOfSequence, TrackedFrame
 from shared.messages.keyframes import TrackFeatures
 
@@ -267,7 +268,7 @@ class Journal:
             if size == 0:
                 os.write(fd, FILE_MAGIC)
                 size = len(FILE_MAGIC)
-                _fsync_dir(self.root)
+                fsync_dir(self.root)
         except OSError as exc:
             raise JournalError(f"journal {path}: cannot open for writing ({exc.strerror})") from exc
         self._fd, self.name, self.bytes = fd, name, size
@@ -346,15 +347,3 @@ class Journal:
             "bytes_per_record": round(self.appended_bytes / n) if n else None,
         }  # fmt: skip
 
-
-def _fsync_dir(path: Path) -> None:
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)

@@ -41,7 +41,7 @@ import numpy as np
 
 from shared.codec import CodecError, decode, encode
 from shared.config.transport import CodecConfig
-from shared.io import atomic_write_bytes
+from shared.io import atomic_write_bytes, fsync_dir
 from shared.messages.graph import GraphSnapshot
 
 log = logging.getLogger(__name__)
@@ -220,10 +220,10 @@ class MapStore:
                 "files": files,
             }
             atomic_write_bytes(partial / MANIFEST, json.dumps(manifest, indent=1, sort_keys=True).encode("utf-8"))
-            _fsync_dir(partial)
+            fsync_dir(partial)
             current = "<rename>"
             os.rename(partial, final)
-            _fsync_dir(self.snapshots_dir)
+            fsync_dir(self.snapshots_dir)
             current = "latest"
             atomic_write_bytes(self.root / "latest", f"{name}\n".encode())
         except OSError as exc:
@@ -351,16 +351,3 @@ class MapStore:
             return state
         raise StoreError(f"no usable map snapshot in {self.root}: " + "; ".join(failures))
 
-
-def _fsync_dir(path: Path) -> None:
-    """Make a rename durable; some filesystems refuse fsync on directories."""
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)

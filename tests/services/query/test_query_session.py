@@ -226,7 +226,8 @@ def test_a_local_encoder_is_loaded_by_the_warm_up():
         bus.close()
 
 
-def test_a_request_past_its_deadline_is_answered_with_an_error_and_not_worked_on():
+def counting_embedder() -> tuple[InProcessBus, FakeFusion, list[str]]:
+    """A bus with a vl/embed that records every text it embeds, and a fake fusion serving."""
     bus = InProcessBus("robot0")
     embedded: list[str] = []
 
@@ -237,6 +238,11 @@ def test_a_request_past_its_deadline_is_answered_with_an_error_and_not_worked_on
     bus.serve(TOPICS.vl_embed, EmbedRequest, EmbedReply, counting)
     fusion = FakeFusion(bus)
     fusion.serve()
+    return bus, fusion, embedded
+
+
+def test_a_request_past_its_deadline_is_answered_with_an_error_and_not_worked_on():
+    bus, fusion, embedded = counting_embedder()
     clock = Clock()
     session = QuerySession(TrackGraphConfig(), bus, sync_wait_s=0, clock=clock)
     try:
@@ -290,16 +296,7 @@ def test_the_embedding_round_trip_is_cut_to_the_deadline():
 
 
 def test_text_embeddings_are_kept_in_a_bounded_lru():
-    bus = InProcessBus("robot0")
-    embedded: list[str] = []
-
-    def counting(env) -> EmbedReply:
-        embedded.append(env.body.text)
-        return embed(env)
-
-    bus.serve(TOPICS.vl_embed, EmbedRequest, EmbedReply, counting)
-    fusion = FakeFusion(bus)
-    fusion.serve()
+    bus, fusion, embedded = counting_embedder()
     session = QuerySession(TrackGraphConfig.model_validate({"query": {"embed_cache_size": 2}}), bus, sync_wait_s=0)
     try:
         session.tick(0.0)
