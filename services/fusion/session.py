@@ -14,7 +14,9 @@ On disk, every frame, feature message and end of sequence it accepts goes to the
 cuts the journal, and a resume replays it after the snapshot through the same handlers, so
 a killed fusion comes back with everything it acknowledged. Acks carry fusion's ``epoch`` (a
 number drawn at start) and ``features_through``; the tracker keeps what is not acknowledged
-and sends it again to a new epoch. Feature messages are applied once per ``serial``.
+and sends it again to a new epoch. Feature messages are applied once per ``serial``, and
+both kinds in the tracker's ``order`` (:mod:`services.fusion.reorder`): a new frame that
+overtakes the resent ones waits for them.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from services.fusion.journal import FIRST, Journal, JournalError, Record
+from services.fusion.reorder import InOrder
 from shared.config.root import TrackGraphConfig
 from shared.config.transport import CodecConfig
 from shared.graph.store import MapStore, StoreError
@@ -95,6 +98,8 @@ class FusionSession(Session):
         self.features_next = 0
         """One past the highest feature ``serial`` applied: lower ones are duplicates."""
         self.features_duplicate = 0
+        self.in_order = InOrder(cfg.fusion.reorder_wait_s, cfg.fusion.reorder_capacity)
+        """The tracker's frames and feature messages put back in the order it sent them."""
         self.replayed: dict[str, int] = {}
         """Journal records replayed at resume, per kind."""
         self.journal_torn = 0
@@ -183,12 +188,14 @@ class FusionSession(Session):
             log.error("%s", exc)
 
     def _session_state(self) -> dict:
-        return {"features": np.asarray([self.features_in, self.features_next], np.int64)}
+        return {"features": np.asarray([self.features_in, self.features_next], np.int64), "order": np.asarray(self.in_order.state(), np.int64)}
 
     def _load_session_state(self, state: dict | None) -> None:
         if state is None:  # a snapshot from before the journal
             return
         self.features_in, self.features_next = (int(x) for x in np.asarray(state["features"]))
+        if "order" in state:
+            self.in_order.load(np.asarray(state["order"]).tolist())
 
     def _ack(self, frame_index: int, now: float) -> None:
         if self._replaying:
@@ -204,6 +211,38 @@ class FusionSession(Session):
     # ---------------------------------------------------------------- inputs
 
     def _on_frame(self, tf: TrackedFrame) -> object:
+        self._arrive("frame", tf, tf.stream, tf.order)
+        return LATER  # counted when applied
+
+    def _on_features(self, msg: TrackFeatures) -> None:
+        self._arrive("features", msg, msg.stream, msg.order)
+
+    def _arrive(self, kind: str, body: TrackedFrame | TrackFeatures, stream: int | None, order: int | None) -> None:
+        """In the tracker's order: applied now with any held ones it lets through, held until
+        its turn, or dropped as already applied (sent again)."""
+        ready, duplicate = self.in_order.admit(kind, body, stream, order, self.clock())
+        if duplicate:
+            if kind == "frame":
+                self.duplicates += 1
+                self.book.count("tracks_frame", "processed")
+                self._ack(body.frame.frame_index, self.clock())
+            else:
+                self.features_duplicate += 1
+            self._check_end(self.clock())
+            self._refresh()
+            return
+        if not ready:
+            self._refresh()  # held for its turn
+        self._apply_ready(ready)
+
+    def _apply_ready(self, ready: list) -> None:
+        for kind, body in ready:
+            if kind == "frame":
+                self._apply_frame(body)
+            else:
+                self._apply_features(body)
+
+    def _apply_frame(self, tf: TrackedFrame) -> None:
         k = tf.frame.frame_index
         t0 = self.clock()
         try:
@@ -215,6 +254,7 @@ class FusionSession(Session):
                     self._first_frame_at = t0
                 self._journal("frame", tf)
                 delta = self.core.add_frame(tf)
+                self.in_order.applied(tf.order)
                 self.frames += 1
                 self._last_frame_at = self.clock()
                 if delta is not None:
@@ -229,24 +269,26 @@ class FusionSession(Session):
             log.exception("fusion failed on a TrackedFrame (frame %d)", k)
         finally:
             # fused, already in the map, or failed: a lossless source waits for it
+            self.in_order.applied(tf.order)
             try:
                 self._ack(k, self.clock())
             finally:
                 self._check_end(self.clock())
                 self._refresh()
-        return LATER  # counted above
 
-    def _on_features(self, msg: TrackFeatures) -> None:
+    def _apply_features(self, msg: TrackFeatures) -> None:
         try:
             if msg.serial is not None and msg.serial < self.features_next:
                 self.features_duplicate += 1  # sent again after a restart, and already in
                 return
             self._journal("features", msg)
             self.core.add_track_features(msg)
+            self.in_order.applied(msg.order)
             self.features_in += 1
             if msg.serial is not None:
                 self.features_next = msg.serial + 1
         finally:
+            self.in_order.applied(msg.order)
             self._check_end(self.clock())
             self._refresh()
 
@@ -277,7 +319,7 @@ class FusionSession(Session):
         end = self.end
         if end is None or self.finished.is_set():
             return
-        if self._replaying or self.queued("tracks_frame", "tracks_features"):
+        if self._replaying or len(self.in_order) or self.queued("tracks_frame", "tracks_features"):
             return
         frames_in = self.core.last_frame_index >= end.last_frame_index
         feats_in = end.track_features_published is None or self.features_in >= end.track_features_published
@@ -360,6 +402,7 @@ class FusionSession(Session):
             "features_duplicate": self.features_duplicate,
             "journal_replayed": dict(self.replayed),
             "journal_torn": self.journal_torn,
+            "reorder": self.in_order.as_dict(),
             "journal": None if self.journal is None else self.journal.stats(),
         }
 
@@ -369,6 +412,7 @@ class FusionSession(Session):
         """The end of the sequence once its grace is over; a snapshot when one is due."""
         with self.lock:
             try:
+                self._apply_ready(self.in_order.expire(now))
                 self._check_end(now)
                 self._maybe_save(now)
                 if self.journal is not None and self.journal.due(now):
@@ -386,6 +430,7 @@ class FusionSession(Session):
         book.figure("frames", self.frames)
         book.figure("frames_in_map", self.core.frames)
         book.figure("duplicates", self.duplicates)
+        book.figure("reorder", self.in_order.as_dict())
         book.figure("graph_seq", self.core.graph.graph_seq)
         book.figure("finished", self.finished.is_set())
         if self.journal is not None:

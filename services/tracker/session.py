@@ -18,13 +18,15 @@ frames after it are held here meanwhile (never waited for), and released in orde
 
 What goes to fusion is kept until fusion acknowledges it (:mod:`services.tracker.resend`) and
 sent again to a restarted fusion, the end of the sequence after it; feature messages carry a
-``serial`` so fusion applies each once.
+``serial`` so fusion applies each once, and both kinds an ``order`` (numbered together, in
+this tracker's ``stream``) so fusion applies them in the order they went out.
 """
 
 from __future__ import annotations
 
 import collections
 import logging
+import secrets
 import time
 from collections.abc import Callable
 from typing import Any
@@ -71,6 +73,10 @@ class TrackerSession(Session):
         """Sent to fusion and not acknowledged: sent again after a fusion restart."""
         self._serial = 0
         """The next feature message's ``serial``: how many distinct ones went out."""
+        self.stream = secrets.randbits(62)
+        """This tracker's epoch, in every message to fusion with its ``order``."""
+        self._order = 0
+        """The next message's ``order``: frames and feature messages to fusion, numbered together."""
         self._sent_end: EndOfSequence | None = None
         """The ``tracks/end`` sent, to send again behind a resend."""
         self.pending: dict[int, float] = {}
@@ -108,12 +114,15 @@ class TrackerSession(Session):
     # ---------------------------------------------------------------- to fusion, kept until acknowledged
 
     def _send_features(self, feats: TrackFeatures) -> None:
-        feats = feats.model_copy(update={"serial": self._serial})
+        feats = feats.model_copy(update={"serial": self._serial, "order": self._order, "stream": self.stream})
         self._serial += 1
+        self._order += 1
         self.features.put(feats)
         self.unacked.sent(feats, self.clock())
 
     def _send_tracked(self, tracked: TrackedFrame) -> None:
+        tracked = tracked.model_copy(update={"order": self._order, "stream": self.stream})
+        self._order += 1
         self.tracked.put(tracked)
         self.unacked.sent(tracked, self.clock())
 

@@ -148,3 +148,11 @@ class FusionConfig(StrictModel):
     """Seconds between on-disk snapshots of the graph."""
     journal: JournalConfig = Field(default_factory=JournalConfig)
     """The write-ahead journal between snapshots."""
+    reorder_wait_s: float = Field(10.0, gt=0)
+    """Not in the paper: how long a tracker message that came ahead of its turn (its
+    ``order``; a new frame overtaking the ones sent again after a fusion restart) waits for
+    those before it. Past this fusion goes on without them (counted). Longer than
+    ``tracker.resend_after_s``, so a resend is waited for."""
+    reorder_capacity: int = Field(64, ge=1)
+    """Not in the paper: the most tracker messages held waiting for their turn (a full-size
+    tracked frame is a few MB); past this the missing ones are given up."""

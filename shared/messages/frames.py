@@ -122,6 +122,12 @@ class TrackedFrame(Message):
     confidence: Confidence | None = None
     """(H, W) probability of each pixel's track under the propagated distribution (eq. 1),
     scaled to 0-255; None where the labels are not propagated (keyframe masks)."""
+    order: int | None = Field(None, ge=0)
+    """Position in the tracker's output to fusion, numbered together with the feature
+    messages (``TrackFeatures.order``), so fusion applies both in the order they were sent.
+    None: applied as it comes."""
+    stream: int | None = Field(None, ge=0)
+    """The tracker's epoch, drawn at its start: a new one tells fusion ``order`` starts again."""
 
     @model_validator(mode="after")
     def _consistent(self) -> TrackedFrame:

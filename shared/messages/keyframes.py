@@ -117,3 +117,9 @@ class TrackFeatures(Message):
     """The tracker's running number of this message (0, 1, ... in the order sent). A message
     sent again after a fusion restart keeps it, so fusion applies each one once. None from a
     sender that never sends again."""
+    order: int | None = Field(None, ge=0)
+    """Position in the tracker's output to fusion: tracked frames and feature messages are
+    numbered together from 0, so fusion applies them in the order they were sent, whatever
+    overtakes what on the way (a resend after a fusion restart). None: applied as it comes."""
+    stream: int | None = Field(None, ge=0)
+    """The tracker's epoch, drawn at its start: a new one tells fusion ``order`` starts again."""

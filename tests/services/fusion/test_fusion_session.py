@@ -116,7 +116,8 @@ def test_frames_fused_duplicates_skipped_and_every_frame_acked(clock, make_frame
     assert rig.core.frames == 4 and s.duplicates == 2 and rig.acks == [0, 1, 1, 0, 2, 3]
     assert [d.graph_seq for d in rig.deltas] == [1, 2]
     report = s.book.report()
-    assert report.figures == {"frames": 4, "frames_in_map": 4, "duplicates": 2, "graph_seq": 2, "finished": False}
+    calm = {"held": 0, "held_most": 0, "skipped": 0, "dropped": 0, "tracker_restarts": 0}
+    assert report.figures == {"frames": 4, "frames_in_map": 4, "duplicates": 2, "reorder": calm, "graph_seq": 2, "finished": False}
     assert report.frames_done == 4 and report.published == {"frame_ack": 6, "graph_delta": 2}
     assert rig.inputs()["tracks_frame"].processed == 6
 

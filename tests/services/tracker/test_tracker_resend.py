@@ -83,6 +83,11 @@ def test_the_tracker_sends_again_to_a_restarted_fusion(clock, make_frame):
     rig.send(acks, fusion_ack(1, epoch=8, through=0))  # fusion restarted, its journal up to frame 1
     assert rig.tracked() == [0, 1, 2, 3, 2, 3]
     assert [f.serial for f in rig.got["tracks_features"]] == [0, 0]
+    # frames and feature messages numbered together in one stream; sent again with their numbers
+    frames, feats = rig.got["tracks_frame"], rig.got["tracks_features"]
+    assert {m.stream for m in frames + feats} == {rig.session.stream}
+    assert sorted(m.order for m in frames[:4] + feats[:1]) == [0, 1, 2, 3, 4]
+    assert [m.order for m in frames[4:]] == [m.order for m in frames[2:4]] and feats[1].order == feats[0].order
     assert len(rig.got["tracks_end"]) == 2  # the end again, after what it announces
     figures = rig.session.book.report().figures["unacked"]
     assert figures["resent"] == 3 and figures["fusion_restarts"] == 1
