@@ -186,10 +186,14 @@ def _cmd_models_check(args: argparse.Namespace) -> int:
             print("this config needs no weight files")
         for m in result["models"]:
             state = "ok" if m["loads"] else ("present" if m["present"] and m["loads"] is None else "MISSING" if not m["present"] else "FAILS")
-            print(f"{m['role']:<15} {m['backend']:<13} {state:<8} {m['path']}")
+            # The absolute path: a relative one is read from wherever the command runs.
+            print(f"{m['role']:<15} {m['backend']:<13} {state:<8} {m.get('resolved') or m['path']}")
+            if m.get("loader"):
+                print(f"{'':<15} loader: {m['loader']}")
             if m["error"]:
                 print(f"{'':<15} {m['error']}")
-            if not m["present"]:
+            # A file that fails to load is as good as missing: say where the right one is.
+            if not m["present"] or m["loads"] is False:
                 print(f"{'':<15} get it: {m['source']}")
     return 0 if result["ok"] else 1
 
@@ -198,7 +202,7 @@ def _cmd_export_onnx(args: argparse.Namespace) -> int:
     from services.models.export import export_all
 
     only = set(args.only) if args.only else None
-    for role, path in export_all(_load_or_default(args.config), args.out, only).items():
+    for role, path in export_all(_load_or_default(args.config), args.out, only, fastsam_static=args.fastsam_static).items():
         print(f"{role}: {path}")
     return 0
 
@@ -524,6 +528,11 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--config", type=Path, required=True, metavar="FILE")
     ex.add_argument("--out", type=Path, required=True, metavar="DIR")
     ex.add_argument("--only", action="append", choices=["segmenter", "vl_encoder", "dense_features"])
+    ex.add_argument(
+        "--fastsam-static", action="store_true",
+        help="fix FastSAM's input at imgsz x imgsz (default: dynamic, letterboxed like the .pt path; "
+        "a static export's masks differ from the .pt path's on non-square frames)",
+    )
     ex.set_defaults(func=_cmd_export_onnx)
 
     sv = sub.add_parser("serve", help="run one service as this process, until Ctrl-C")

@@ -29,7 +29,7 @@ import shutil
 import socket
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -141,8 +141,12 @@ def trial_frames(rate_hz: float, seconds: float | None, frames: int | None, keyf
     return max(math.ceil(seconds * rate_hz), keyframe_interval + 1)
 
 
-def live_trial(sequence: Path, config: Path, work: Path, rate_hz: float, frames: int | None) -> dict[str, Any]:
-    """One run of the live system at ``rate_hz`` over the first ``frames`` frames."""
+def live_trial(
+    sequence: Path, config: Path, work: Path, rate_hz: float, frames: int | None, *, extra_services: Sequence[dict] = ()
+) -> dict[str, Any]:
+    """One run of the live system at ``rate_hz`` over the first ``frames`` frames.
+    ``extra_services``: launch-file entries of more services started with it (e.g.
+    ``{"name": "query"}``); the sustained-rate rule still judges the four stages alone."""
     from shared.config.root import load_config
 
     source: dict[str, Any] = {"mode": "live", "rate_hz": float(rate_hz)}
@@ -153,6 +157,7 @@ def live_trial(sequence: Path, config: Path, work: Path, rate_hz: float, frames:
         {"name": "router"},
         {"name": "keyframe_vl"},
         {"name": "fusion", "args": ["--exit-at-end"]},
+        *(dict(s) for s in extra_services),
         {"name": "tracker", "after": ["keyframe_vl"]},
         {"name": "source", "after": ["tracker", "fusion"]},
     ]

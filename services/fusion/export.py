@@ -16,6 +16,17 @@ from shared.config.root import TrackGraphConfig
 from shared.io import atomic_write_bytes
 
 
+def peak_rss_mb() -> float:
+    """This process's peak resident memory since it started, in MB.
+
+    /proc's VmHWM, not getrusage's ru_maxrss: Linux carries ru_maxrss across fork and exec, so
+    a service started by a 5 GB parent (a bench holding CLIP weights) reported at least 5 GB
+    whatever it used itself."""
+    from shared.procfs import status_mb
+
+    return status_mb("VmHWM") or resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
 def run_summary(cfg: TrackGraphConfig, fusion, snapshot, *, frames: int, seconds: float, sequence: Path | str | None) -> dict[str, Any]:
     """``run.json``: what was mapped, how fast, with what, on what (the in-process pipeline
     and the fusion service write the same keys; RAM and GPU memory are this process's)."""
@@ -23,7 +34,7 @@ def run_summary(cfg: TrackGraphConfig, fusion, snapshot, *, frames: int, seconds
         "frames": frames,
         "seconds": round(seconds, 3),
         "hz": round(frames / seconds, 3) if seconds > 0 else None,
-        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+        "peak_rss_mb": round(peak_rss_mb(), 1),
         "segments": len(fusion.segments.segments),
         "gpu_peak_mb": _gpu_peak_mb(),
         "graph_seq": snapshot.graph_seq,
@@ -36,6 +47,12 @@ def run_summary(cfg: TrackGraphConfig, fusion, snapshot, *, frames: int, seconds
             "segmenter": cfg.keyframe_vl.segmenter.backend,
             "vl_encoder": cfg.keyframe_vl.vl.backend,
         },
+        "precision": {
+            "dense_features": cfg.tracker.features.precision,
+            "segmenter": cfg.keyframe_vl.segmenter.precision,
+            "vl_encoder": cfg.keyframe_vl.vl.precision,
+        },
+        "devices": {"tracker": cfg.tracker.device, "keyframe_vl": cfg.keyframe_vl.device, "query": cfg.query.device},
         "voxel_size": cfg.fusion.tsdf.voxel_size,
         "machine": {"platform": platform.platform(), "python": platform.python_version()},
     }

@@ -15,22 +15,12 @@ from services.keyframe_vl.embedder import Embedder, warm_up_encoder
 from services.keyframe_vl.encoders import make_vl_encoder
 from services.keyframe_vl.segmenters import make_segmenter
 from shared.config.keyframe_vl import KeyframeVLConfig
+from shared.devices import resolve_device
 from shared.messages.keyframes import KeyframeMasks, KeyframeRequest, MaskFeatures
 from shared.messages.rpc import EmbedReply, EmbedRequest
 from shared.perception import KeyframeImage, Masks, Segmenter, VLEncoder
 
 log = logging.getLogger(__name__)
-
-
-def resolve_device(device: str) -> str:
-    """'auto' becomes 'cuda' when torch sees a GPU, else 'cpu' (torch imported only then)."""
-    if device != "auto":
-        return device
-    try:
-        import torch
-    except ImportError:
-        return "cpu"
-    return "cuda" if torch.cuda.is_available() else "cpu"
 
 
 def keyframe_image(req: KeyframeRequest) -> KeyframeImage:
@@ -43,10 +33,9 @@ class KeyframeVLCore:
 
     def __init__(self, cfg: KeyframeVLConfig, segmenter: Segmenter | None = None, encoder: VLEncoder | None = None) -> None:
         self.cfg = cfg
-        device = resolve_device(cfg.device)
-        fp16 = cfg.fp16 and device.startswith("cuda")
-        self.segmenter = segmenter or make_segmenter(cfg.segmenter, device=device, fp16=fp16)
-        self.encoder = encoder or make_vl_encoder(cfg.vl, device=device, fp16=fp16)
+        device = resolve_device(cfg.device, "keyframe_vl.device")
+        self.segmenter = segmenter or make_segmenter(cfg.segmenter, device=device, fp16=cfg.fp16)
+        self.encoder = encoder or make_vl_encoder(cfg.vl, device=device, fp16=cfg.fp16)
         self.embedder = Embedder(self.encoder, cfg.embed_cache_size)
 
     def warm_up(self) -> None:

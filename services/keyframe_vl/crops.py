@@ -5,17 +5,62 @@ or pad their boxes differently, and the pixels are unambiguous. A box is half-op
 ``[x0, x1) x [y0, y1)``, and is padded by ``padding`` times its width (height) on the left
 and right (top and bottom), rounded outwards to whole pixels and clipped to the image. The paper
 gives no padding; ``keyframe_vl.vl.crop_padding`` defaults to 0.1.
+
+CLIP sees a square. ``keyframe_vl.vl.crop_mode`` says how a crop becomes one:
+``pad_square`` (the default) centres it on a square of CLIP's mean colour, so the resize that
+follows keeps every pixel; ``center_crop`` leaves it to OpenCLIP's transform, which resizes
+the short side and keeps only the middle square (a 165x6 crop keeps 6 of its 165 columns).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Iterator, Sequence
-from typing import Annotated, TypeVar
+from typing import Annotated, Literal, TypeVar
 
 import numpy as np
 
 T = TypeVar("T")
+
+CropMode = Literal["pad_square", "center_crop"]
+CROP_MODES: tuple[CropMode, ...] = ("pad_square", "center_crop")
+
+
+def fill_colour(mean: tuple[float, float, float] | list[float]) -> tuple[int, int, int]:
+    """The uint8 colour that normalises to (about) zero under CLIP's ``mean``: padding with it
+    adds no signal to the crop."""
+    return tuple(int(round(255.0 * float(m))) for m in mean)  # type: ignore[return-value]
+
+
+def square_offsets(h: int, w: int) -> tuple[int, int, int]:
+    """``(side, top, left)``: the square a ``h`` x ``w`` crop is centred on."""
+    side = max(h, w)
+    return side, (side - h) // 2, (side - w) // 2
+
+
+def pad_to_square(
+    crop: Annotated[np.ndarray, "(h, w, 3) uint8"], fill: tuple[int, int, int]
+) -> Annotated[np.ndarray, "(s, s, 3) uint8, s = max(h, w)"]:
+    """``crop`` centred on a square of ``fill``; a square crop comes back as it is."""
+    h, w = crop.shape[:2]
+    if h == w:
+        return crop
+    side, top, left = square_offsets(h, w)
+    out = np.empty((side, side, 3), np.uint8)
+    out[...] = np.asarray(fill, np.uint8)
+    out[top : top + h, left : left + w] = crop
+    return out
+
+
+def shape_crops(
+    crops: list[np.ndarray], mode: CropMode, fill: tuple[int, int, int]
+) -> list[np.ndarray]:
+    """The crops as ``mode`` hands them to CLIP's own transform (see the module doc)."""
+    if mode == "center_crop":
+        return crops
+    if mode == "pad_square":
+        return [pad_to_square(c, fill) for c in crops]
+    raise ValueError(f"crop mode {mode!r}: expected one of {', '.join(CROP_MODES)}")
 
 
 def mask_box(mask: Annotated[np.ndarray, "(H, W) bool"]) -> tuple[int, int, int, int] | None:

@@ -21,7 +21,6 @@ def eval_segmenter(seq_dir: Path, cfg: TrackGraphConfig, *, every: int | None = 
     """Segment every K_f-th frame (the keyframes) and match each ground-truth object larger
     than 0.5% of the image to its best mask. ``mean_best_iou`` averages over all such
     (keyframe, object) pairs; ``objects`` counts them."""
-    from services.keyframe_vl.core import resolve_device
     from services.keyframe_vl.segmenters import make_segmenter
     from services.mapping import prepare_config
     from shared.perception import KeyframeImage
@@ -29,7 +28,7 @@ def eval_segmenter(seq_dir: Path, cfg: TrackGraphConfig, *, every: int | None = 
     cfg = prepare_config(cfg, Path(seq_dir))
     reader = open_sequence(seq_dir, cfg.source.dataset, cfg.source)
     step = every or cfg.tracker.keyframe_interval
-    segmenter = make_segmenter(cfg.keyframe_vl.segmenter, device=resolve_device(cfg.keyframe_vl.device))
+    segmenter = make_segmenter(cfg.keyframe_vl.segmenter, device=cfg.keyframe_vl.device, fp16=cfg.keyframe_vl.fp16)
     ious: list[float] = []
     per_frame = []
     seconds = []

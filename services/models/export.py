@@ -1,6 +1,11 @@
 """``trackgraph export-onnx``: the configured FastSAM, CLIP towers and DINOv3 as ONNX files,
 for onnxruntime or TensorRT on a Jetson. Point a config's ``fastsam_onnx``, ``clip_onnx`` and
-``dinov3_onnx`` backends at the results."""
+``dinov3_onnx`` backends at the results.
+
+FastSAM is exported with dynamic height and width, so the ``fastsam_onnx`` backend can
+letterbox each frame exactly as the .pt path does (480x640 at imgsz 1024 to 768x1024) and give
+its masks; a static square export pads such frames to 1024x1024 and finds other masks (TensorRT
+builds a dynamic-shape ONNX file with an optimisation profile: ``--minShapes``/``--optShapes``)."""
 
 from __future__ import annotations
 
@@ -12,8 +17,12 @@ from shared.config.root import TrackGraphConfig
 log = logging.getLogger(__name__)
 
 
-def export_all(cfg: TrackGraphConfig, out: Path, only: set[str] | None = None) -> dict[str, str]:
-    """Export every learned model of ``cfg`` (or the ``only`` roles) under ``out``."""
+def export_all(
+    cfg: TrackGraphConfig, out: Path, only: set[str] | None = None, fastsam_static: bool = False
+) -> dict[str, str]:
+    """Export every learned model of ``cfg`` (or the ``only`` roles) under ``out``. FastSAM's
+    input is dynamic unless ``fastsam_static``, which fixes it at ``imgsz`` x ``imgsz`` (masks of
+    non-square frames then differ from the .pt path's)."""
     out = Path(out)
     done: dict[str, str] = {}
     seg, vl, feats = cfg.keyframe_vl.segmenter, cfg.keyframe_vl.vl, cfg.tracker.features
@@ -25,7 +34,7 @@ def export_all(cfg: TrackGraphConfig, out: Path, only: set[str] | None = None) -
     if "segmenter" in want and seg.backend == "fastsam":
         from services.keyframe_vl.segmenters.fastsam_onnx import export_fastsam_onnx
 
-        done["segmenter"] = str(export_fastsam_onnx(seg.weights, out / "fastsam.onnx", seg.imgsz))
+        done["segmenter"] = str(export_fastsam_onnx(seg.weights, out / "fastsam.onnx", seg.imgsz, dynamic=not fastsam_static))
     if "vl_encoder" in want and vl.backend == "openclip":
         from services.keyframe_vl.encoders.clip_onnx import export_clip_onnx
 

@@ -45,10 +45,14 @@ class OfflineQueries:
     def __init__(self, map_dir: Path, cfg: TrackGraphConfig | None = None) -> None:
         from services.keyframe_vl.embedder import Embedder
         from services.keyframe_vl.encoders import make_vl_encoder
+        from shared.devices import resolve_device
 
         self.cfg = cfg or map_config(map_dir)
         self.index = load_index(map_dir, self.cfg.query.min_view_share)
-        self.embedder = Embedder(make_vl_encoder(self.cfg.keyframe_vl.vl), self.cfg.keyframe_vl.embed_cache_size)
+        encoder = make_vl_encoder(
+            self.cfg.keyframe_vl.vl, device=resolve_device(self.cfg.query.device, "query.device"), fp16=self.cfg.keyframe_vl.fp16
+        )
+        self.embedder = Embedder(encoder, self.cfg.keyframe_vl.embed_cache_size)
         self.engine = QueryEngine(self.cfg.query, self._embed)
 
     def _embed(self, req: EmbedRequest) -> np.ndarray:
@@ -67,8 +71,11 @@ class MapTextEncoder:
 
     def __init__(self, cfg: TrackGraphConfig) -> None:
         from services.keyframe_vl.encoders import make_vl_encoder
+        from shared.devices import resolve_device
 
-        self._encoder = make_vl_encoder(cfg.keyframe_vl.vl)
+        self._encoder = make_vl_encoder(
+            cfg.keyframe_vl.vl, device=resolve_device(cfg.query.device, "query.device"), fp16=cfg.keyframe_vl.fp16
+        )
         self.name = self._encoder.name
         self.dim = int(self._encoder.dim)
 

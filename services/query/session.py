@@ -80,8 +80,13 @@ class QuerySession:
         self._embedder = embedder
         if self._embedder is None and cfg.query.embed == "local":
             from services.keyframe_vl.encoders import make_vl_encoder
+            from shared.devices import resolve_device
 
-            self._embedder = Embedder(make_vl_encoder(cfg.keyframe_vl.vl), cfg.keyframe_vl.embed_cache_size)
+            # The text tower (ViT-H-14's needs about 4 GB) runs where the config puts it.
+            encoder = make_vl_encoder(
+                cfg.keyframe_vl.vl, device=resolve_device(cfg.query.device, "query.device"), fp16=cfg.keyframe_vl.fp16
+            )
+            self._embedder = Embedder(encoder, cfg.keyframe_vl.embed_cache_size)
         self.engine = QueryEngine(cfg.query, self._embed)
         self._text_cache = TextCache(0 if self._embedder is not None else cfg.query.embed_cache_size)
         """Remote embeddings only: the local Embedder keeps its own cache."""

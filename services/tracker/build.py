@@ -12,19 +12,16 @@ from shared.config.root import TrackGraphConfig
 def build_tracker(cfg: TrackGraphConfig) -> Any:
     """The tracker core of ``cfg.tracker.mode``: a ``TrackerCore``, or a ``GroundTruthTracker``
     (its keyframes embedded by the configured VL encoder, no masks asked for)."""
-    from services.keyframe_vl.core import resolve_device
-
     if cfg.tracker.mode == "ground_truth":
         from services.keyframe_vl.encoders import make_vl_encoder
         from services.tracker.oracle import GroundTruthTracker
 
-        encoder = make_vl_encoder(cfg.keyframe_vl.vl, device=resolve_device(cfg.keyframe_vl.device))
+        encoder = make_vl_encoder(cfg.keyframe_vl.vl, device=cfg.keyframe_vl.device, fp16=cfg.keyframe_vl.fp16)
         return GroundTruthTracker(cfg.tracker.keyframe_interval, encoder, cfg.tracker.oracle_retire_frames, ground_truth=cfg.tracker.ground_truth)
     from services.tracker.core import TrackerCore
     from services.tracker.features import make_dense_features
 
-    device = resolve_device(cfg.tracker.device)
-    features = make_dense_features(cfg.tracker.features, device=device, fp16=device.startswith("cuda"))
+    features = make_dense_features(cfg.tracker.features, device=cfg.tracker.device)
     return TrackerCore(cfg.tracker, features)
 
 

@@ -5,10 +5,12 @@ from __future__ import annotations
 import copy
 import difflib
 from pathlib import Path
-from typing import TypeVar
+from typing import Annotated, Literal, TypeVar
 
 import yaml
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from shared.devices import DEVICE_PATTERN
 
 
 class StrictModel(BaseModel):
@@ -20,6 +22,13 @@ class StrictModel(BaseModel):
         use_attribute_docstrings=True,
         frozen=False,
     )
+
+
+Device = Annotated[str, Field(pattern=DEVICE_PATTERN)]
+"""A torch device: ``auto`` (CUDA when torch sees a GPU), ``cpu``, ``cuda`` or ``cuda:N``."""
+
+Precision = Literal["auto", "fp32", "fp16", "bf16"]
+"""A model's numeric precision; ``auto`` is fp16 on CUDA and fp32 on a CPU (shared/devices.py)."""
 
 
 class ConfigError(ValueError):

@@ -6,7 +6,7 @@ from typing import Literal
 
 from pydantic import Field
 
-from shared.config.base import StrictModel
+from shared.config.base import Device, StrictModel
 
 
 class QueryConfig(StrictModel):
@@ -33,6 +33,11 @@ class QueryConfig(StrictModel):
     embed: Literal["remote", "local"] = "remote"
     """Embed queries through keyframe_vl's ``vl/embed``, or with a local encoder built
     from ``keyframe_vl.vl``."""
+    device: Device = "auto"
+    """Torch device of the local encoder (``embed: local``, and offline queries): ``auto``
+    (CUDA when present), ``cpu``, ``cuda`` or ``cuda:N``. ViT-H-14's text tower needs about
+    4 GB; on a base station with a GPU it belongs there. Its precision is
+    ``keyframe_vl.vl.precision``."""
     workers: int = Field(4, ge=1)
     """Threads answering queries concurrently."""
     queue_size: int = Field(16, ge=1)

@@ -25,31 +25,36 @@ __all__ = ["BACKENDS", "make_vl_encoder"]
 
 
 def make_vl_encoder(
-    cfg: VLEncoderConfig, device: str = "cpu", fp16: bool = False, ground_truth: InstanceSource | None = None
+    cfg: VLEncoderConfig, device: str = "cpu", fp16: bool = True, ground_truth: InstanceSource | None = None
 ) -> VLEncoder:
     """The encoder ``cfg.backend`` names.
 
-    ``device`` is ``cpu``, ``cuda`` (or ``cuda:N``) or ``auto``; ``fp16`` runs the ``openclip``
-    backend under fp16 autocast on CUDA and is ignored elsewhere. Missing weights raise
+    ``device`` is ``cpu``, ``cuda`` (or ``cuda:N``) or ``auto``. The ``openclip`` backend runs
+    in ``cfg.precision``; ``fp16`` says whether its ``auto`` may be half precision on CUDA
+    (shared/devices.py). Missing weights raise
     FileNotFoundError naming the path and where to get them; ``simulated`` without usable
     ground truth raises FileNotFoundError or ValueError naming the file or the config field.
     ``ground_truth`` gives the ``simulated`` backend its instance ids instead of the sequence
     folder of ``cfg.ground_truth`` (tests); the other backends need none.
     """
+    if cfg.backend in ("openclip", "clip_onnx"):
+        from shared.devices import resolve_device
+
+        device = resolve_device(device)
     if cfg.backend == "openclip":
-        from services.keyframe_vl.encoders.common import resolve_device
         from services.keyframe_vl.encoders.openclip import OpenClipEncoder
+        from shared.devices import resolve_precision
 
         return OpenClipEncoder(
-            cfg.model, cfg.weights, device=resolve_device(device), fp16=fp16,
-            crop_padding=cfg.crop_padding, batch_size=cfg.batch_size,
+            cfg.model, cfg.weights, device=device, precision=resolve_precision(cfg.precision, device, fp16),
+            crop_padding=cfg.crop_padding, batch_size=cfg.batch_size, crop_mode=cfg.crop_mode,
         )  # fmt: skip
     if cfg.backend == "clip_onnx":
         from services.keyframe_vl.encoders.clip_onnx import ClipOnnxEncoder
 
         return ClipOnnxEncoder(
             cfg.weights, arch=cfg.model, device=device,
-            crop_padding=cfg.crop_padding, batch_size=cfg.batch_size,
+            crop_padding=cfg.crop_padding, batch_size=cfg.batch_size, crop_mode=cfg.crop_mode,
         )  # fmt: skip
     if cfg.backend == "simulated":
         from services.keyframe_vl.encoders.simulated import SimulatedVLEncoder

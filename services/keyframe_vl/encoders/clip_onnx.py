@@ -25,7 +25,14 @@ from typing import Annotated, Any
 import numpy as np
 from PIL import Image
 
-from services.keyframe_vl.crops import batched, padded_crops
+from services.keyframe_vl.crops import (
+    CROP_MODES,
+    CropMode,
+    batched,
+    fill_colour,
+    padded_crops,
+    shape_crops,
+)
 from services.keyframe_vl.encoders.common import check_rgb, unit_rows
 from services.keyframe_vl.encoders.weights import ONNX_IMAGE, ONNX_META, ONNX_TEXT, resolve_onnx_dir
 from shared.perception import KeyframeImage, Masks
@@ -88,18 +95,6 @@ def read_meta(folder: Path) -> dict[str, Any]:
     return meta
 
 
-def _providers(device: str) -> list[str]:
-    import onnxruntime as ort
-
-    available = ort.get_available_providers()
-    if device == "auto" or device.startswith("cuda"):
-        if "CUDAExecutionProvider" in available:
-            return ["CUDAExecutionProvider", "CPUExecutionProvider"]
-        if device != "auto":
-            log.warning("CUDA asked for, but onnxruntime has no CUDA provider (has %s); running on CPU", available)
-    return ["CPUExecutionProvider"]
-
-
 class ClipOnnxEncoder:
     """The ``clip_onnx`` VL backend, reading a folder written by :func:`export_clip_onnx`."""
 
@@ -110,8 +105,14 @@ class ClipOnnxEncoder:
         device: str = "cpu",
         crop_padding: float = 0.1,
         batch_size: int = 16,
+        crop_mode: CropMode = "pad_square",
     ) -> None:
         import onnxruntime as ort
+
+        from shared.devices import onnx_providers
+
+        if crop_mode not in CROP_MODES:
+            raise ValueError(f"crop mode {crop_mode!r}: expected one of {', '.join(CROP_MODES)}")
 
         from services.keyframe_vl.encoders.openclip import _import_open_clip
 
@@ -132,14 +133,16 @@ class ClipOnnxEncoder:
         self.resize_mode = str(meta.get("resize_mode", "shortest"))
         self.crop_padding = float(crop_padding)
         self.batch_size = int(batch_size)
+        self.crop_mode: CropMode = crop_mode
+        self.fill = fill_colour(self.mean)
         t0 = time.perf_counter()
-        providers = _providers(device)
+        providers = onnx_providers(device, "keyframe_vl.device")
         self.image_session = ort.InferenceSession(str(self.folder / ONNX_IMAGE), providers=providers)
         self.text_session = ort.InferenceSession(str(self.folder / ONNX_TEXT), providers=providers)
         self.tokenizer = _import_open_clip().get_tokenizer(self.arch, context_length=int(meta["context_length"]))
         log.info(
             "CLIP ONNX %s loaded from %s (%s) in %.1f s",
-            self.arch, self.folder, providers[0], time.perf_counter() - t0,
+            self.arch, self.folder, self.image_session.get_providers()[0], time.perf_counter() - t0,
         )  # fmt: skip
 
     def preprocess(self, rgb: Annotated[np.ndarray, "(H, W, 3) uint8"]) -> Annotated[np.ndarray, "(3, S, S) float32"]:
@@ -158,7 +161,8 @@ class ClipOnnxEncoder:
         rgb = check_rgb(image.rgb)
         if len(masks) == 0:
             return np.zeros((0, self.dim), np.float32)
-        return self._forward_images(padded_crops(rgb, masks.masks, self.crop_padding, masks.boxes))
+        crops = padded_crops(rgb, masks.masks, self.crop_padding, masks.boxes)
+        return self._forward_images(shape_crops(crops, self.crop_mode, self.fill))
 
     def encode_text(self, texts: list[str]) -> Annotated[np.ndarray, "(N, D) float32"]:
         feats = []

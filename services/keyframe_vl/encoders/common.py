@@ -21,12 +21,3 @@ def check_rgb(rgb: np.ndarray) -> Annotated[np.ndarray, "(H, W, 3) uint8"]:
     if rgb.shape[0] == 0 or rgb.shape[1] == 0:
         raise ValueError(f"empty image {rgb.shape}")
     return rgb
-
-
-def resolve_device(device: str) -> str:
-    """``auto`` becomes ``cuda`` when torch sees a GPU, else ``cpu`` (torch is imported only then)."""
-    if device != "auto":
-        return device
-    import torch
-
-    return "cuda" if torch.cuda.is_available() else "cpu"

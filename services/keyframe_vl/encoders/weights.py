@@ -16,7 +16,15 @@ CHECKPOINT_NAMES = (
     "model.safetensors",
     "pytorch_model.bin",
 )
-"""File names a Hugging Face OpenCLIP repository folder holds its weights under, preferred first."""
+"""File names a Hugging Face OpenCLIP repository folder holds its weights under, preferred first
+(open_clip's own order). In the LAION repositories the last two hold the transformers
+``CLIPModel`` conversion, which open_clip cannot load; they stay as fallbacks because some
+repositories keep open_clip weights under them, and ``load_openclip`` tells the two apart by
+their keys (``is_transformers_clip``)."""
+
+TRANSFORMERS_CLIP_PREFIXES = ("vision_model.", "text_model.")
+"""Key prefixes of a transformers ``CLIPModel`` state dict; open_clip's are ``visual.``,
+``transformer.``, ``token_embedding.`` and the like."""
 
 ONNX_META = "clip_onnx.json"
 ONNX_IMAGE = "image.onnx"
@@ -42,6 +50,23 @@ def weights_hint(arch: str) -> str:
         "each lives on the Hugging Face hub)"
     )
     return f"{where} on a machine with internet, copy it here and set keyframe_vl.vl.weights to its path"
+
+
+def is_transformers_clip(keys) -> bool:
+    """Whether state-dict ``keys`` are a transformers ``CLIPModel``'s (``vision_model.*``,
+    ``text_model.*``), not OpenCLIP's."""
+    return any(str(k).startswith(TRANSFORMERS_CLIP_PREFIXES) for k in keys)
+
+
+def transformers_clip_hint(arch: str) -> str:
+    """What to fetch instead of a transformers-format CLIP checkpoint."""
+    repo = SOURCES.get(arch)
+    where = f"the same Hugging Face repository ({repo})" if repo else "the same Hugging Face repository"
+    return (
+        "these are Hugging Face transformers CLIPModel weights (keys vision_model.*, text_model.*), "
+        "which open_clip cannot load: it needs open_clip_pytorch_model.bin or "
+        f"open_clip_model.safetensors from {where}; set keyframe_vl.vl.weights to that file"
+    )
 
 
 def resolve_checkpoint(weights: str | Path, arch: str) -> Path:

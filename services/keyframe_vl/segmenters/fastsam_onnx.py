@@ -1,5 +1,14 @@
 """FastSAM exported to ONNX and run by onnxruntime, with numpy post-processing (no torch at
-run time), and the export itself."""
+run time), and the export itself.
+
+The export is dynamic-shape by default. ultralytics' predictor letterboxes a frame for .pt
+weights to the smallest stride-multiple rectangle (``LetterBox(auto=True)``: 480x640 at imgsz
+1024 becomes 768x1024, no padding), and the network's output depends on the input's shape and
+its grey border, so only an export that accepts that rectangle gives the .pt path's masks. A
+static square export still works on any frame, letterboxed to its fixed size like
+ultralytics' own predictor does for static exports, but its masks differ (the network sees a
+different input).
+"""
 
 from __future__ import annotations
 
@@ -13,7 +22,12 @@ import numpy as np
 
 from services.keyframe_vl.segmenters import yolo_post
 from services.keyframe_vl.segmenters.base import check_image, finalize, require_file
-from services.keyframe_vl.segmenters.fastsam import MAX_DETECTIONS, WEIGHTS_HINT, load_fastsam
+from services.keyframe_vl.segmenters.fastsam import (
+    MAX_DETECTIONS,
+    WEIGHTS_HINT,
+    load_fastsam,
+    precision_kwargs,
+)
 from shared.config.keyframe_vl import SegmenterConfig
 from shared.perception import KeyframeImage, Masks
 
@@ -21,6 +35,7 @@ log = logging.getLogger(__name__)
 
 ONNX_HINT = (
     "export it from a local FastSAM checkpoint with "
+    "`trackgraph export-onnx --config FILE --out DIR` or "
     "`python -m services.keyframe_vl.segmenters.fastsam_onnx FastSAM-x.pt FastSAM-x.onnx --imgsz 1024` "
     "(export_fastsam_onnx), or point keyframe_vl.segmenter.weights at your export"
 )
@@ -30,14 +45,17 @@ def export_fastsam_onnx(
     pt_path: str | Path,
     onnx_path: str | Path,
     imgsz: int = 1024,
-    dynamic: bool = False,
+    dynamic: bool = True,
     fp16: bool = False,
     device: str = "cpu",
 ) -> Path:
     """Export a local FastSAM checkpoint to ONNX with ultralytics' exporter (not simplified, so
-    no extra packages are needed). ``dynamic`` accepts any input size, letterboxed to ``imgsz``
-    like the .pt path; otherwise the input is fixed at ``imgsz`` x ``imgsz``. ``fp16`` writes a
-    half-precision model, which ultralytics exports on a CUDA ``device`` only."""
+    no extra packages are needed). ``dynamic`` (the default) accepts any input size; the
+    ``fastsam_onnx`` backend then letterboxes each frame to the rectangle the .pt path uses at
+    its configured ``imgsz``, and the masks are the .pt path's. ``dynamic=False`` fixes the
+    input at ``imgsz`` x ``imgsz`` (for runtimes without dynamic shapes): frames of any other
+    aspect are padded to that square and their masks differ from the .pt path's. ``fp16``
+    writes a half-precision model, which ultralytics exports on a CUDA ``device`` only."""
     pt_path = require_file(pt_path, "FastSAM checkpoint", WEIGHTS_HINT)
     onnx_path = Path(onnx_path)
     with tempfile.TemporaryDirectory() as tmp:
@@ -49,7 +67,7 @@ def export_fastsam_onnx(
             imgsz=imgsz,
             dynamic=dynamic,
             simplify=False,
-            quantize=16 if fp16 else None,
+            **precision_kwargs(fp16),  # quantize= or half=, whichever this ultralytics knows
             device=device,
             verbose=False,
         )
@@ -57,18 +75,6 @@ def export_fastsam_onnx(
         shutil.move(str(made), onnx_path)
     log.info("exported %s to %s (imgsz %d%s%s)", pt_path, onnx_path, imgsz, ", dynamic" if dynamic else "", ", fp16" if fp16 else "")
     return onnx_path
-
-
-def _providers(device: str) -> list[str]:
-    import onnxruntime as ort
-
-    available = ort.get_available_providers()
-    if device == "auto" or device.startswith("cuda"):
-        if "CUDAExecutionProvider" in available:
-            return ["CUDAExecutionProvider", "CPUExecutionProvider"]
-        if device != "auto":
-            log.warning("device %s asked for but onnxruntime has no CUDA provider (%s): running on CPU", device, available)
-    return ["CPUExecutionProvider"]
 
 
 class FastSAMOnnxSegmenter:
@@ -80,8 +86,10 @@ class FastSAMOnnxSegmenter:
         path = require_file(cfg.weights, "FastSAM ONNX export", ONNX_HINT)
         import onnxruntime as ort
 
+        from shared.devices import onnx_providers
+
         self.cfg = cfg
-        self.session = ort.InferenceSession(str(path), providers=_providers(device))
+        self.session = ort.InferenceSession(str(path), providers=onnx_providers(device, "keyframe_vl.device"))
         inp = self.session.get_inputs()[0]
         self.input_name = inp.name
         self.input_dtype = np.float16 if inp.type == "tensor(float16)" else np.float32
@@ -89,13 +97,18 @@ class FastSAMOnnxSegmenter:
         self.stride = int(meta.get("stride", 32))
         dims = inp.shape[2:]
         self.dynamic = not all(isinstance(d, int) for d in dims)
+        side = yolo_post.input_size(cfg.imgsz, self.stride)
+        # What ultralytics' predictor letterboxes to for .pt weights at this imgsz: the square
+        # of check_imgsz, shrunk to the smallest stride-multiple rectangle (LetterBox auto=True).
+        self.pt_hw = (side, side)
         if self.dynamic:
-            side = yolo_post.input_size(cfg.imgsz, self.stride)
-            self.new_hw = (side, side)
+            self.new_hw = self.pt_hw
         else:
             self.new_hw = (int(dims[0]), int(dims[1]))
             if cfg.imgsz != max(self.new_hw):
                 log.warning("%s has a fixed %s input; imgsz %d is ignored", path, self.new_hw, cfg.imgsz)
+        self._warned_shapes: set[tuple[int, int]] = set()
+        self.path = path
         if fp16 and self.input_dtype != np.float16:
             log.info("%s is an fp32 export; export_fastsam_onnx(..., fp16=True) on CUDA makes an fp16 one", path)
         log.info(
@@ -113,9 +126,27 @@ class FastSAMOnnxSegmenter:
         """Letterbox plan and the two raw outputs (detections, prototypes) for one image."""
         h, w = check_image(rgb)
         lb = yolo_post.plan_letterbox((h, w), self.new_hw, auto=self.dynamic, stride=self.stride)
+        if not self.dynamic:
+            self._warn_if_unlike_pt(lb)
         x = yolo_post.letterbox_image(rgb, lb).astype(self.input_dtype)
         out0, out1 = self.session.run(None, {self.input_name: x})[:2]
         return lb, np.asarray(out0, np.float32), np.asarray(out1, np.float32)
+
+    def _warn_if_unlike_pt(self, lb: yolo_post.Letterbox) -> None:
+        """Once per frame size: a static export that letterboxes otherwise than the .pt path
+        feeds the network another input (other size, more grey border), so its masks differ."""
+        if lb.image_hw in self._warned_shapes:
+            return
+        self._warned_shapes.add(lb.image_hw)
+        pt = yolo_post.plan_letterbox(lb.image_hw, self.pt_hw, auto=True, stride=self.stride)
+        if (pt.input_hw, pt.resized_wh) != (lb.input_hw, lb.resized_wh):
+            log.warning(
+                "%s has a fixed %dx%d (height x width) input: %dx%d frames are letterboxed to it, while "
+                "the .pt path letterboxes them to %dx%d, so the masks will differ from the .pt path's; export a "
+                "dynamic-shape model (trackgraph export-onnx, or export_fastsam_onnx(..., dynamic=True)) "
+                "to get the same masks",
+                self.path, *lb.input_hw, *lb.image_hw, *pt.input_hw,
+            )
 
     def segment(self, image: KeyframeImage) -> Masks:
         lb, out0, out1 = self.raw(image.rgb)
@@ -139,7 +170,15 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("pt", help="FastSAM .pt checkpoint (never downloaded)")
     parser.add_argument("onnx", help="where to write the .onnx file")
     parser.add_argument("--imgsz", type=int, default=1024)
-    parser.add_argument("--dynamic", action="store_true", help="accept any input size")
+    shape = parser.add_mutually_exclusive_group()
+    shape.add_argument(
+        "--dynamic", dest="dynamic", action="store_true", default=True,
+        help="accept any input size, letterboxed as the .pt path does (the default)",
+    )
+    shape.add_argument(
+        "--static", dest="dynamic", action="store_false",
+        help="fixed imgsz x imgsz input; masks of non-square frames then differ from the .pt path's",
+    )
     parser.add_argument("--fp16", action="store_true", help="half precision (needs --device cuda)")
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)

@@ -92,14 +92,23 @@ def box_iou_one(box: np.ndarray, boxes: np.ndarray) -> np.ndarray:
 
 
 def nms(
-    boxes: Annotated[np.ndarray, "(N, 4) xyxy"], scores: Annotated[np.ndarray, "(N,)"], iou_thres: float
+    boxes: Annotated[np.ndarray, "(N, 4) xyxy"],
+    scores: Annotated[np.ndarray, "(N,)"],
+    iou_thres: float,
+    max_keep: int | None = None,
 ) -> Annotated[np.ndarray, "(K,) int64 kept indices, best first"]:
     """Greedy non-maximum suppression: a box goes when its IoU with a better kept one exceeds
-    ``iou_thres``."""
+    ``iou_thres`` (torchvision's ``nms``), then the first ``max_keep`` (ultralytics' ``max_det``).
+
+    Stopping once ``max_keep`` are kept gives the same result, since a box is kept or dropped
+    by the better ones alone; it keeps a low ``conf`` (thousands of candidates) from costing one
+    numpy pass per candidate."""
     order = np.argsort(-scores, kind="stable")
     keep = []
     alive = np.ones(len(order), bool)
     for rank, i in enumerate(order):
+        if max_keep is not None and len(keep) >= max_keep:
+            break
         if not alive[rank]:
             continue
         keep.append(i)
@@ -137,7 +146,7 @@ def decode(
     boxes = np.concatenate([xywh[:, :2] - xywh[:, 2:] / 2, xywh[:, :2] + xywh[:, 2:] / 2], axis=1)
     label = cls.argmax(axis=1)
     offset = (label[:, None] * CLASS_OFFSET).astype(np.float32)
-    keep = nms(boxes + offset, best, iou)[:max_det]
+    keep = nms(boxes + offset, best, iou, max_det)
     return Detections(boxes[keep], best[keep], pred[keep, 4 + nc :])
 
 

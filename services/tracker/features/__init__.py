@@ -22,12 +22,17 @@ log = logging.getLogger(__name__)
 __all__ = ["DenseFeatures", "export_dinov3_onnx", "grid_shape", "make_dense_features", "resized_shape"]
 
 
-def make_dense_features(cfg: DenseFeaturesConfig, device: str = "cpu", fp16: bool = False) -> DenseFeatures:
+def make_dense_features(cfg: DenseFeaturesConfig, device: str = "cpu", fp16: bool = True) -> DenseFeatures:
     """The configured backend, ready to call on (H, W, 3) uint8 frames.
 
     ``dinov3`` and ``dinov3_onnx`` read local files only and raise FileNotFoundError naming
-    the path and where the weights come from. ``fp16`` applies to ``dinov3`` on CUDA.
+    the path and where the weights come from. ``device`` is ``cpu``, ``cuda``, ``cuda:N`` or
+    ``auto``. ``dinov3`` runs in ``cfg.precision``; ``fp16`` says whether its ``auto`` may be
+    half precision on CUDA (shared/devices.py).
     """
+    from shared.devices import resolve_device, resolve_precision
+
+    device = resolve_device(device, "tracker.device")
     if cfg.backend == "classical":
         from services.tracker.features.classical import ClassicalFeatures
 
@@ -38,7 +43,7 @@ def make_dense_features(cfg: DenseFeaturesConfig, device: str = "cpu", fp16: boo
         model = load_patch_tokens(cfg.loader, cfg.weights)
         if model.patch_size != cfg.patch_size:
             raise ValueError(f"DINOv3 weights have patch size {model.patch_size}, config says {cfg.patch_size}")
-        return Dinov3Features(model, cfg.short_side, device, fp16)
+        return Dinov3Features(model, cfg.short_side, device, resolve_precision(cfg.precision, device, fp16))
     if cfg.backend == "dinov3_onnx":
         from services.tracker.features.onnx_backend import Dinov3OnnxFeatures
 

@@ -40,6 +40,7 @@ from services.tracker.features.base import (
     PatchGridMixin,
     check_inputs,
 )
+from shared.checkpoints import key_report
 
 log = logging.getLogger(__name__)
 
@@ -121,8 +122,18 @@ def _resolve_file(loader: str, path: Path, names: tuple[str, ...], pattern: str)
     raise missing_weights(loader, path)
 
 
-def timm_from_state_dict(state_dict: dict[str, torch.Tensor], source: str) -> nn.Module:
-    """Builds timm's ViT-S+/16 DINOv3 and loads timm- or hub-format weights into it."""
+def foreign_weights(loader: str, source: str | Path, report: str) -> ValueError:
+    return ValueError(
+        f"{source} is not a DINOv3 ViT-S+/16 checkpoint ({loader} layout): {report}. "
+        f"Put {WHERE[loader]} there, or point tracker.features.weights at it."
+    )
+
+
+def timm_from_state_dict(state_dict: dict[str, torch.Tensor], source: str, loader: str = "timm") -> nn.Module:
+    """Builds timm's ViT-S+/16 DINOv3 and loads timm- or hub-format weights into it.
+
+    Any missing, unexpected or wrongly shaped key refuses the file (ValueError naming
+    ``source``): timm would otherwise leave those weights at their random init."""
     import timm
     from timm.models.eva import checkpoint_filter_fn
 
@@ -133,31 +144,92 @@ def timm_from_state_dict(state_dict: dict[str, torch.Tensor], source: str) -> nn
     model = timm.create_model(variant, pretrained=False, num_classes=0)
     mapped = checkpoint_filter_fn(state_dict, model)
     mapped = {k: v for k, v in mapped.items() if not k.startswith(("head.", "fc_norm."))}
+    shapes = {k: tuple(v.shape) for k, v in mapped.items()}
+    # The filter resamples a patch embedding of another patch size to 16x16 without a word:
+    # judge that key by the shape the file holds, so a ViT-*/14 is refused, not resized.
+    raw_patch = state_dict.get("patch_embed.proj.weight")
+    if raw_patch is not None and "patch_embed.proj.weight" in shapes:
+        shapes["patch_embed.proj.weight"] = tuple(raw_patch.shape)
+    expected = {k: tuple(v.shape) for k, v in model.state_dict().items()}
+    missing = [k for k in expected if k not in shapes]
+    unexpected = [k for k in shapes if k not in expected]
+    mismatched = [(k, shapes[k], expected[k]) for k in expected if k in shapes and shapes[k] != expected[k]]
+    if missing or unexpected or mismatched:
+        raise foreign_weights(loader, source, key_report(missing, unexpected, mismatched))
     try:
-        missing, unexpected = model.load_state_dict(mapped, strict=False)
-    except RuntimeError as exc:
-        raise ValueError(f"{source} is not a DINOv3 ViT-S+/16 checkpoint: {exc}") from exc
-    if missing or unexpected:
-        raise ValueError(
-            f"{source} is not a DINOv3 ViT-S+/16 checkpoint: missing {missing[:5]}, unexpected {unexpected[:5]}"
-        )
+        model.load_state_dict(mapped)
+    except RuntimeError as exc:  # keys and shapes agree, so only a dtype or storage problem is left
+        raise ValueError(f"{source}: DINOv3 ViT-S+/16 weights that do not load: {exc}") from exc
     return model.eval()
+
+
+HF_ARCH = {
+    "hidden_size": 384,
+    "patch_size": 16,
+    "num_register_tokens": 4,
+    "num_hidden_layers": 12,
+    "num_attention_heads": 6,
+    "intermediate_size": 1536,
+    "use_gated_mlp": True,
+}
+"""The architecture in facebook/dinov3-vits16plus-pretrain-lvd1689m's config.json. The
+SwiGLU MLP is what tells S+ from ViT-S/16, which has the same width."""
+
+HF_WEIGHT_FILES = ("model.safetensors", "model.safetensors.index.json", "pytorch_model.bin", "pytorch_model.bin.index.json")
+
+
+def _load_transformers(path: Path) -> PatchTokens:
+    """A ``save_pretrained`` folder of exactly ViT-S+/16: its config is checked before the
+    weights are read, and transformers' loading report afterwards."""
+    import json
+
+    from transformers import DINOv3ViTConfig, DINOv3ViTModel
+
+    config_file = path / "config.json"
+    if not config_file.is_file():
+        raise missing_weights("transformers", path, "no config.json")
+    if not any((path / name).is_file() for name in HF_WEIGHT_FILES):
+        raise missing_weights("transformers", path, f"no {' / '.join(HF_WEIGHT_FILES[::2])}")
+    try:
+        model_type = json.loads(config_file.read_text()).get("model_type")
+    except (OSError, ValueError, AttributeError) as exc:
+        raise ValueError(f"{config_file} is not a transformers config (a JSON object): {exc}") from exc
+    if model_type != "dinov3_vit":
+        raise ValueError(
+            f"{config_file} describes a {model_type!r} model, not DINOv3 ViT-S+/16 (model_type 'dinov3_vit'). "
+            f"Put {WHERE['transformers']} there."
+        )
+    cfg = DINOv3ViTConfig.from_pretrained(str(path), local_files_only=True)
+    found = {key: getattr(cfg, key, None) for key in HF_ARCH}
+    if isinstance(found["patch_size"], (list, tuple)):
+        found["patch_size"] = int(found["patch_size"][0])
+    wrong = [f"{key} {found[key]!r} (expected {want!r})" for key, want in HF_ARCH.items() if found[key] != want]
+    if wrong:
+        raise ValueError(
+            f"{config_file} describes a DINOv3 ViT other than ViT-S+/16: {', '.join(wrong)}. "
+            f"Put {WHERE['transformers']} there."
+        )
+    # from_pretrained gives every key the file lacks a random init and only logs it, so a
+    # folder holding another model's weights would "load". Its report is checked instead;
+    # ignore_mismatched_sizes puts wrong shapes into that report too, where transformers
+    # would otherwise raise a RuntimeError that only points at its logged table.
+    model, info = DINOv3ViTModel.from_pretrained(
+        str(path), config=cfg, local_files_only=True, output_loading_info=True, ignore_mismatched_sizes=True
+    )
+    errors = list(info.get("error_msgs") or [])
+    report = key_report(info.get("missing_keys") or set(), info.get("unexpected_keys") or set(), info.get("mismatched_keys") or set())
+    if errors:
+        report = "; ".join(filter(None, [report, f"errors: {' | '.join(errors[:3])}"]))
+    if report:
+        raise foreign_weights("transformers", path, report)
+    return PatchTokens(model.eval(), "transformers", 1 + cfg.num_register_tokens, cfg.hidden_size, HF_ARCH["patch_size"])
 
 
 def load_patch_tokens(loader: Loader, weights: str | Path) -> PatchTokens:
     """The ViT-S+/16 backbone from local files, on CPU in float32, in eval mode."""
-    path = Path(weights).expanduser()
+    path = Path(weights).expanduser().resolve()  # errors name the absolute path that was read
     if loader == "transformers":
-        if not (path / "config.json").is_file():
-            raise missing_weights(loader, path, "no config.json")
-        from transformers import DINOv3ViTModel
-
-        model = DINOv3ViTModel.from_pretrained(str(path), local_files_only=True).eval()
-        cfg = model.config
-        if cfg.model_type != "dinov3_vit":
-            raise ValueError(f"{path} holds a {cfg.model_type} model, not dinov3_vit")
-        patch = cfg.patch_size if isinstance(cfg.patch_size, int) else int(cfg.patch_size[0])
-        wrapped = PatchTokens(model, "transformers", 1 + cfg.num_register_tokens, cfg.hidden_size, patch)
+        wrapped = _load_transformers(path)
     elif loader in ("timm", "hub"):
         if loader == "timm":
             file = _resolve_file(loader, path, ("model.safetensors", "pytorch_model.bin"), "*.safetensors")
@@ -166,7 +238,7 @@ def load_patch_tokens(loader: Loader, weights: str | Path) -> PatchTokens:
         state = _read_state_dict(file)
         if loader == "hub" and "storage_tokens" not in state:
             raise ValueError(f"{file} is not an official DINOv3 checkpoint (no storage_tokens); use loader: timm")
-        model = timm_from_state_dict(state, str(file))
+        model = timm_from_state_dict(state, str(file), loader)
         wrapped = PatchTokens(model, "timm", model.num_prefix_tokens, model.embed_dim, model.patch_embed.patch_size[0])
     else:
         raise ValueError(f"unknown DINOv3 loader {loader!r}")
@@ -180,7 +252,14 @@ def preprocess(
     device: torch.device | str = "cpu",
 ) -> Annotated[torch.Tensor, "(1, 3, H', W') float32, ImageNet-normalised"]:
     """Resize (bilinear, antialiased when shrinking) and normalise one frame for the ViT."""
-    x = torch.from_numpy(np.ascontiguousarray(rgb)).to(device).permute(2, 0, 1)[None].float().div_(255.0)
+    return preprocess_tensor(torch.from_numpy(np.ascontiguousarray(rgb)).to(device), size)
+
+
+def preprocess_tensor(
+    rgb: Annotated[torch.Tensor, "(H, W, 3) uint8"], size: tuple[int, int]
+) -> Annotated[torch.Tensor, "(1, 3, H', W') float32, ImageNet-normalised"]:
+    """``preprocess`` of a frame already on its device."""
+    x = rgb.permute(2, 0, 1)[None].float().div_(255.0)
     if tuple(x.shape[-2:]) != tuple(size):
         x = F.interpolate(x, size=size, mode="bilinear", align_corners=False, antialias=True)
     mean = torch.tensor(IMAGENET_MEAN, device=x.device).view(1, 3, 1, 1)
@@ -195,21 +274,42 @@ def tokens_to_grid(tokens: torch.Tensor, h: int, w: int) -> Annotated[torch.Tens
 
 
 class Dinov3Features(PatchGridMixin):
-    """DINOv3 ViT-S+/16 patch features (torch), fp16 on CUDA when asked."""
+    """DINOv3 ViT-S+/16 patch features (torch) in fp32, or fp16 / bf16 under autocast."""
 
     name = "dinov3"
 
-    def __init__(self, model: PatchTokens, short_side: int, device: str | torch.device = "cpu", fp16: bool = False):
+    def __init__(self, model: PatchTokens, short_side: int, device: str | torch.device = "cpu", precision: str = "fp32"):
+        from shared.devices import PRECISIONS
+
+        if precision not in PRECISIONS:
+            raise ValueError(f"DINOv3 precision {precision!r}: expected one of {', '.join(PRECISIONS)}")
         self.device = torch.device(device)
         self.patch_size = model.patch_size
         self.dim = model.dim
         self.appearance_dims = model.dim
         self.short_side = short_side
-        # Half precision pays only on GPUs; on CPU it is slower and loses accuracy.
-        self.dtype = torch.float16 if fp16 and self.device.type == "cuda" else torch.float32
-        if fp16 and self.device.type != "cuda":
-            log.warning("fp16 DINOv3 requested on %s: running float32 instead", self.device)
-        self.model = model.to(self.device, self.dtype).eval()
+        self.precision = precision
+        # fp32 weights under autocast, not a half model: the final LayerNorm and the per-patch
+        # normalisation keep full precision, and the matmuls take the fast path.
+        self.model = model.to(self.device).eval()
+        self._pinned: torch.Tensor | None = None
+        self._copied: torch.cuda.Event | None = None
+
+    def _upload(self, rgb: np.ndarray) -> torch.Tensor:
+        """The frame on the device, through one reused pinned buffer on CUDA (one
+        asynchronous copy a frame, no pageable staging)."""
+        if self.device.type != "cuda":
+            return torch.from_numpy(np.ascontiguousarray(rgb))
+        if self._pinned is None or tuple(self._pinned.shape) != rgb.shape:
+            self._pinned = torch.empty(rgb.shape, dtype=torch.uint8, pin_memory=True)
+            self._copied = None
+        if self._copied is not None:
+            self._copied.synchronize()  # the previous frame's copy has left the buffer
+        self._pinned.numpy()[...] = rgb
+        on_device = self._pinned.to(self.device, non_blocking=True)
+        self._copied = torch.cuda.Event()
+        self._copied.record()
+        return on_device
 
     @torch.no_grad()
     def __call__(
@@ -217,8 +317,11 @@ class Dinov3Features(PatchGridMixin):
         rgb: Annotated[np.ndarray, "(H, W, 3) uint8"],
         depth_m: Annotated[np.ndarray, "(H, W) float32"] | None = None,
     ) -> Annotated[torch.Tensor, "(h, w, D) float32, unit L2 norm per patch"]:
+        from shared.devices import autocast
+
         height, width = check_inputs(rgb, depth_m)
         size = self.resized_shape(height, width)
-        x = preprocess(rgb, size, self.device).to(self.dtype)
-        tokens = self.model(x)[0]
+        x = preprocess_tensor(self._upload(rgb), size)
+        with autocast(str(self.device), self.precision):  # type: ignore[arg-type]
+            tokens = self.model(x)[0]
         return tokens_to_grid(tokens, size[0] // self.patch_size, size[1] // self.patch_size)

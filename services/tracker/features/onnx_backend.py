@@ -100,16 +100,12 @@ class Dinov3OnnxFeatures(PatchGridMixin):
     def __init__(self, path: str | Path, short_side: int, patch_size: int, device: str = "cpu"):
         import onnxruntime as ort
 
+        from shared.devices import onnx_providers
+
         self.path = resolve_onnx_path(path)
         self.short_side = short_side
         self.device = torch.device(device)
-        available = ort.get_available_providers()
-        providers = ["CPUExecutionProvider"]
-        if self.device.type == "cuda":
-            if "CUDAExecutionProvider" in available:
-                providers.insert(0, "CUDAExecutionProvider")
-            else:
-                log.warning("onnxruntime has no CUDA provider here; DINOv3 ONNX runs on CPU")
+        providers = onnx_providers(device, "tracker.device")
         options = ort.SessionOptions()
         options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         self.session = ort.InferenceSession(str(self.path), options, providers=providers)

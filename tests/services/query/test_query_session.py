@@ -369,3 +369,30 @@ def test_a_request_waiting_for_a_worker_is_answered_at_its_deadline():
         gate.set()
         session.close()
         bus.close()
+
+
+def test_the_local_encoder_runs_on_the_query_device(monkeypatch):
+    import services.keyframe_vl.encoders as encoders
+
+    asked = []
+
+    class Encoder:
+        name, dim = "fake", 4
+
+        def encode_text(self, texts):
+            return np.ones((len(texts), 4), np.float32) / 2
+
+    def make(cfg, device="cpu", fp16=True, ground_truth=None):
+        asked.append((device, fp16))
+        return Encoder()
+
+    monkeypatch.setattr(encoders, "make_vl_encoder", make)
+    cfg = TrackGraphConfig.model_validate({"query": {"embed": "local", "device": "cpu"}, "keyframe_vl": {"fp16": False}})
+    bus = InProcessBus("robot0")
+    QuerySession(cfg, bus, sync_wait_s=0).close()
+    assert asked == [("cpu", False)]
+    torch = pytest.importorskip("torch")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ValueError, match="query.device 'cuda:1'"):
+        QuerySession(cfg.model_copy(update={"query": cfg.query.model_copy(update={"device": "cuda:1"})}), bus, sync_wait_s=0)
+    bus.close()

@@ -65,7 +65,9 @@ def tiny_pt(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def tiny_onnx(tiny_pt, tmp_path_factory):
-    return export_fastsam_onnx(tiny_pt, tmp_path_factory.mktemp("onnx") / "tiny-fastsam.onnx", IMGSZ)
+    """A static square export: the tests below check its fixed-size letterbox (the dynamic
+    default is in test_seg_fastsam_onnx_parity.py)."""
+    return export_fastsam_onnx(tiny_pt, tmp_path_factory.mktemp("onnx") / "tiny-fastsam.onnx", IMGSZ, dynamic=False)
 
 
 @pytest.fixture(scope="module")

@@ -49,6 +49,8 @@ def test_nms_matches_torchvision():
     for thr in (0.3, 0.5, 0.9):
         ref = torchvision.ops.nms(torch.from_numpy(boxes), torch.from_numpy(scores), thr).numpy()
         np.testing.assert_array_equal(yolo_post.nms(boxes, scores, thr), ref)
+        # Stopping at max_det keeps the same first boxes (decode's early exit).
+        np.testing.assert_array_equal(yolo_post.nms(boxes, scores, thr, max_keep=7), ref[:7])
 
 
 def test_decode_filters_and_orders():
