@@ -131,12 +131,17 @@ def _cmd_eval_openlex3d(args: argparse.Namespace) -> int:
 
     if args.pred is None and not args.oracle:
         raise CommandError("give --pred MAP_DIR, or --oracle to score the ground truth itself")
+    if not 0 < args.alignment_threshold < float("inf"):  # also refuses NaN
+        raise CommandError(f"--alignment-threshold must be a positive squared distance in m², got {args.alignment_threshold}")
     encoder = None
     if args.pred is not None and not args.oracle and (Path(args.pred) / "config.yaml").is_file():
         from services.query.offline import map_text_encoder
 
         encoder = map_text_encoder(Path(args.pred))  # a CLIP map is scored in CLIP's space
-    result = eval_openlex3d(args.pred, args.gt, oracle=args.oracle, top_n=args.top_n, encoder=encoder)
+    result = eval_openlex3d(
+        args.pred, args.gt, oracle=args.oracle, top_n=args.top_n, encoder=encoder,
+        alignment=args.alignment, alignment_threshold=args.alignment_threshold,
+    )  # fmt: skip
     keys = ["synonyms", "depictions", "vis_sim", "clutter", "missing", "incorrect", "ap", "ap50", "ap25", "top1_hit_rate"]
     _print_metrics(result, args.json, keys)
     return 0
@@ -146,6 +151,28 @@ def _cmd_eval_instances(args: argparse.Namespace) -> int:
     from shared.eval import eval_instances
 
     _print_metrics(eval_instances(args.pred, args.gt), args.json, ["ap", "ap50", "ap25", "segments_per_object"])
+    return 0
+
+
+def _cmd_eval_rooms(args: argparse.Namespace) -> int:
+    from shared.eval.rooms import eval_rooms
+
+    if not 0 < args.iou <= 1:
+        raise CommandError(f"--iou must be in (0, 1], got {args.iou}")
+    result = eval_rooms(args.pred, args.gt, iou=args.iou)
+    keys = ["precision", "recall", "f1", "n_pred", "n_gt", "over_segmented", "under_segmented", "mean_iou", "type_accuracy"]
+    _print_metrics(result, args.json, keys)
+    if not args.json:
+        from rich.console import Console
+        from rich.table import Table
+
+        table = Table(show_header=True, header_style="bold", title=f"ground-truth rooms (match at IoU >= {args.iou:g})")
+        for col in ("room", "type", "best predicted", "IoU", "matched"):
+            table.add_column(col, justify="right" if col in ("IoU", "best predicted") else "left")
+        for r in result["per_room"]:
+            best = "none" if r["best_pred_id"] is None else f"{r['best_pred_id']}" + (f" ({r['best_pred_name']})" if r["best_pred_name"] else "")
+            table.add_row(r["gt_name"], r["gt_type"], best, f"{r['iou']:.3f}", "no" if r["matched_pred_id"] is None else "yes")
+        Console().print(table)
     return 0
 
 
@@ -488,6 +515,15 @@ def build_parser() -> argparse.ArgumentParser:
     ol.add_argument("--gt", type=Path, required=True, metavar="GT_DIR")
     ol.add_argument("--oracle", action="store_true", help="score the ground truth itself (upper bound)")
     ol.add_argument("--top-n", type=int, default=5, metavar="N")
+    ol.add_argument(
+        "--alignment", choices=["per_mask", "global"], default="per_mask",
+        help="retrieval mask alignment: per_mask (OpenLex3D's default: a point joins every instance "
+        "within the threshold) or global (the instance of its nearest predicted point)",
+    )  # fmt: skip
+    ol.add_argument(
+        "--alignment-threshold", type=float, default=0.001, metavar="D2",
+        help="alignment threshold on the SQUARED distance in m² (default 0.001, OpenLex3D's: 3.16 cm)",
+    )  # fmt: skip
     ol.add_argument("--json", action="store_true")
     ol.set_defaults(func=_cmd_eval_openlex3d)
     ins = evsub.add_parser("instances", help="class-agnostic 3D instance AP and duplicates")
@@ -495,6 +531,12 @@ def build_parser() -> argparse.ArgumentParser:
     ins.add_argument("--gt", type=Path, required=True, metavar="GT_DIR")
     ins.add_argument("--json", action="store_true")
     ins.set_defaults(func=_cmd_eval_instances)
+    rm = evsub.add_parser("rooms", help="room segmentation (needs MAP_DIR/rooms.npz): precision, recall, F1 and IoU per room")
+    rm.add_argument("--pred", type=Path, required=True, metavar="MAP_DIR")
+    rm.add_argument("--gt", type=Path, required=True, metavar="GT_DIR")
+    rm.add_argument("--iou", type=float, default=0.5, metavar="T", help="IoU at which a predicted room matches a ground-truth room")
+    rm.add_argument("--json", action="store_true", help='print {"precision", "recall", "f1", "mean_iou", "type_accuracy", ..., "per_room"}')
+    rm.set_defaults(func=_cmd_eval_rooms)
     tr = evsub.add_parser("tracking", help="2D source-track quality (needs map --save-tracks)")
     tr.add_argument("--pred", type=Path, required=True, metavar="MAP_DIR")
     tr.add_argument("--gt", type=Path, required=True, metavar="SEQ_DIR")

@@ -131,5 +131,33 @@ def pose_from_quat(
     return T
 
 
+def matrix_to_quat(R: Annotated[np.ndarray, "(3, 3) rotation"]) -> Annotated[np.ndarray, "(4,) w, x, y, z unit, w >= 0"]:
+    """Unit quaternion of a rotation matrix (Shepperd's method: the largest of the four
+    squared components is taken first, so no division is by a small number)."""
+    m = np.asarray(R, np.float64)
+    tr = np.trace(m)
+    d = np.array([tr, m[0, 0], m[1, 1], m[2, 2]])
+    k = int(np.argmax(d))
+    if k == 0:
+        w = 0.5 * np.sqrt(max(1.0 + tr, 0.0))
+        q = np.array([w, (m[2, 1] - m[1, 2]) / (4 * w), (m[0, 2] - m[2, 0]) / (4 * w), (m[1, 0] - m[0, 1]) / (4 * w)])
+    else:
+        i, j, n = (k - 1), k % 3, (k + 1) % 3
+        v = np.zeros(3)
+        v[i] = 0.5 * np.sqrt(max(1.0 + 2 * m[i, i] - tr, 0.0))
+        v[j] = (m[j, i] + m[i, j]) / (4 * v[i])
+        v[n] = (m[n, i] + m[i, n]) / (4 * v[i])
+        w = (m[n, j] - m[j, n]) / (4 * v[i])
+        q = np.array([w, *v])
+    q /= np.linalg.norm(q)
+    return q if q[0] >= 0 else -q
+
+
+def pose_row(T: Pose) -> Annotated[np.ndarray, "(7,) x y z qx qy qz qw"]:
+    """A pose as translation and scalar-last unit quaternion (the ROS / spark_dsg order)."""
+    q = matrix_to_quat(np.asarray(T, np.float64)[:3, :3])
+    return np.array([*np.asarray(T, np.float64)[:3, 3], q[1], q[2], q[3], q[0]])
+
+
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 """Right-multiply a camera-to-world pose in OpenGL axes (y up, z back) to get OpenCV axes."""

@@ -39,6 +39,11 @@ VARIANTS: dict[str, dict] = {
 }
 """Run name -> overrides on the config: the efficiency table's two voxel sizes (IV-A) and the
 tracker ablation's per-frame segmentation."""
+HIERARCHY_RUN = "3cm"
+"""The run whose rooms the hierarchy table scores (the other quality tables' run)."""
+HIERARCHY_KEYS = (
+    "n_pred", "n_gt", "precision", "recall", "f1", "over_segmented", "under_segmented", "mean_iou", "type_accuracy",
+)  # fmt: skip
 RATE_START_SHARE = 0.75
 """The rate search starts at this share of the mode's in-process rate: the distributed system
 shares the same cores between more processes."""
@@ -74,6 +79,25 @@ def _rate_search(
         return res
 
     return search_rate(trial, start, trials)
+
+
+def evaluate_hierarchy(map_dir: Path, gt: Path) -> dict[str, Any]:
+    """The rooms of ``map_dir`` against the ground truth (``shared.eval.rooms``): precision,
+    recall and F1 at IoU 0.5, over/under-segmentation, mean IoU and type accuracy. A map without ``rooms.npz``, or ground truth
+    without rooms, gives None figures and the reason in ``error`` (logged), not a failure."""
+    from shared.eval.errors import EvalInputError
+    from shared.eval.rooms import eval_rooms
+
+    out: dict[str, Any] = {k: None for k in HIERARCHY_KEYS}
+    out.update(n_types=None, per_room=[], error=None)
+    try:
+        rooms = eval_rooms(map_dir, gt)
+        out.update({k: rooms[k] for k in HIERARCHY_KEYS}, per_room=rooms["per_room"])
+        out["n_types"] = len({r["gt_type"] for r in rooms["per_room"]})
+    except EvalInputError as exc:
+        out["error"] = str(exc)
+        log.warning("hierarchy table: n/a for %s: %s", map_dir, exc)
+    return out
 
 
 def prepare_sequence(out: Path, preset: str | None, seed: int, sequence: Path | None, gt: Path | None) -> tuple[Path, Path, str]:
@@ -145,6 +169,7 @@ def run_bench(
 
     t0 = time.monotonic()
     results = []
+    hierarchy: list[dict[str, Any]] = []
     try:
         for name, path in zip(names, configs, strict=True):
             entry: dict[str, Any] = {"name": name, "path": str(path), "runs": {}, "rate": {}, "random_weights": random_weights is not None}
@@ -177,6 +202,9 @@ def run_bench(
                     entry["rate"][run_name] = {
                         "max_sustained_hz": best, "trials": trials, "frames_per_trial": rate_frames, "seconds_per_trial": rate_seconds,
                     }  # fmt: skip
+            if HIERARCHY_RUN in entry["runs"]:
+                run = entry["runs"][HIERARCHY_RUN]
+                hierarchy.append({"config": name, "run": HIERARCHY_RUN, "map": run["map"], **evaluate_hierarchy(Path(run["map"]), gt_dir)})
             results.append(entry)
     finally:
         if bar is not None:
@@ -193,6 +221,7 @@ def run_bench(
         "when": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
         "seconds": round(time.monotonic() - t0, 1),
         "configs": results,
+        "hierarchy": hierarchy,
     }
     for entry in results:
         entry["commit"], entry["machine"] = res["commit"], res["machine"]

@@ -148,8 +148,38 @@ def markdown(res: dict[str, Any]) -> str:
         ["config", "max (eq. 10)", "mean"],
         [[c["name"], _f(c["runs"]["3cm"]["eval"]["gallery"]["max"]), _f(c["runs"]["3cm"]["eval"]["gallery"]["mean"])] for c in res["configs"]],
     )
+    lines += hierarchy_table(res.get("hierarchy"))
     lines.append("")
     return "\n".join(lines)
+
+
+def hierarchy_table(rows: list[dict[str, Any]] | None) -> list[str]:
+    """The rooms of each config's map against the ground-truth rooms (``shared.eval.rooms``),
+    with the reason under the table for each row that has none; nothing for a bench result
+    from before the table existed."""
+    if rows is None:
+        return []
+    lines = ["", "## Hierarchy (rooms against the ground truth, 3 cm)", ""]
+    lines += _table(
+        ["config", "rooms predicted / GT", "precision", "recall", "F1 @ 0.5", "over-segmented", "under-segmented", "mean IoU"],
+        [[
+            r["config"], "n/a" if r.get("n_pred") is None else f"{r['n_pred']} / {r['n_gt']}", _f(r.get("precision")), _f(r.get("recall")),
+            _f(r.get("f1")), "n/a" if r.get("over_segmented") is None else str(r["over_segmented"]),
+            "n/a" if r.get("under_segmented") is None else str(r["under_segmented"]), _f(r.get("mean_iou")),
+        ] for r in rows],
+    )  # fmt: skip
+    lines += [
+        "",
+        "Ground-truth rooms are their inner floor, predicted rooms `rooms.npz`'s cells, IoU counted in cells and "
+        "matched one-to-one at IoU >= 0.5. Over-segmented: ground-truth rooms split among 2 or more predicted rooms "
+        "(each with >= 20% of its cells inside); under-segmented: predicted rooms holding >= 20% of 2 or more "
+        "ground-truth rooms. Type top-1: the room whose feature best matches a room type's text is matched to a "
+        "room of that type.",
+    ]
+    for r in rows:
+        if r.get("error"):
+            lines += ["", f"`{r['config']}`: n/a where shown because {r['error']}"]
+    return lines
 
 
 def plots(res: dict[str, Any], folder: Path) -> list[Path]:

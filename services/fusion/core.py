@@ -14,11 +14,13 @@ from typing import Annotated, Any
 import numpy as np
 
 from services.fusion.hypotheses import confidence
-from services.fusion.rooms import HierarchyBuilder
+from services.fusion.rooms import Hierarchy, HierarchyBuilder
 from services.fusion.segments import SegmentLayer
 from services.fusion.tsdf import HypothesisTSDF
 from services.fusion.types import HypothesisMesh, TrackState
 from shared.config.fusion import FusionConfig
+from shared.geometry import pose_row
+from shared.graph.roomgrid import RoomGrid
 from shared.graph.scene import SceneGraph
 from shared.messages.frames import TrackedFrame
 from shared.messages.graph import GraphDelta, GraphSnapshot, MeshChunk
@@ -41,6 +43,10 @@ class FusionCore:
         self.graph = SceneGraph()
         self.tracks: dict[int, TrackState] = {}
         self.trajectory: list[np.ndarray] = []
+        self.poses: list[np.ndarray] = []
+        """(7,) ``x y z qx qy qz qw`` of each fused frame, for the agent layer."""
+        self.pose_frames: list[int] = []
+        self.last_hierarchy: Hierarchy | None = None
         self.surface: dict[tuple[int, int, int], np.ndarray] = {}
         self.frames = 0
         self.updates = 0
@@ -67,6 +73,8 @@ class FusionCore:
         position = fr.T_world_cam[:3, 3].copy()
         self.tsdf.update_window(position)
         self.trajectory.append(position)
+        self.poses.append(pose_row(fr.T_world_cam))
+        self.pose_frames.append(int(fr.frame_index))
         self.frames += 1
         self.last_frame_index = fr.frame_index
         if self.frames % self.cfg.mesh_every_n_frames == 0:
@@ -102,8 +110,9 @@ class FusionCore:
         points = self.surface_points()
         if len(points) and len(self.trajectory):
             try:
-                h = self.hierarchy.build(points, np.stack(self.trajectory))
+                h = self.hierarchy.build(points, np.stack(self.trajectory), active=(center, self.cfg.tsdf.active_window_m))
                 places, rooms = h.places, h.rooms
+                self.last_hierarchy = h
             except ValueError as exc:
                 # Too little of the floor is mapped yet to find free space; keep the last layers.
                 log.debug("places and rooms not rebuilt: %s", exc)
@@ -154,9 +163,30 @@ class FusionCore:
         """The graph; ``with_mesh`` adds the active window's mesh, ``whole_map`` the whole
         map's instead (for saving a finished map)."""
         snap = self.graph.snapshot(with_mesh=with_mesh and not whole_map)
+        update: dict[str, Any] = {
+            "trajectory": np.stack(self.poses) if self.poses else np.zeros((0, 7)),
+            "trajectory_frames": np.asarray(self.pose_frames, np.int64),
+        }
         if whole_map:
-            snap = snap.model_copy(update={"mesh": self.full_mesh_chunk()})
-        return snap
+            update["mesh"] = self.full_mesh_chunk()
+        return snap.model_copy(update=update)
+
+    def room_grid(self) -> RoomGrid | None:
+        """The rooms' footprints of the last rebuild (room ids per free-space cell), or None
+        before the first."""
+        h = self.last_hierarchy
+        if h is None:
+            return None
+        ids = self.hierarchy.room_ids
+        lab = h.room_layout.labels
+        names = {r.id: r.name for r in h.rooms}
+        return RoomGrid(
+            labels=np.where(lab >= 0, ids[np.maximum(lab, 0)] if ids.size else -1, -1).astype(np.int32),
+            origin=h.layout.freespace.origin.astype(np.float64),
+            resolution=float(h.layout.freespace.resolution),
+            room_ids=ids.copy(),
+            names=[names.get(int(i), "") for i in ids],
+        )
 
     def _add_surface(self, vertices: Annotated[np.ndarray, "(V, 3) float32"]) -> None:
         """Keep one point per 5 cm cell of everything ever meshed: places and rooms must cover
@@ -193,6 +223,8 @@ class FusionCore:
                 "retired": np.asarray([self.tracks[t].retired for t in tracks], bool),
             },
             "trajectory": np.stack(self.trajectory) if self.trajectory else np.zeros((0, 3)),
+            "poses": np.stack(self.poses) if self.poses else np.zeros((0, 7)),
+            "pose_frames": np.asarray(self.pose_frames, np.int64),
             "surface": self.surface_points(),
             "counters": np.asarray([self.frames, self.updates, self.last_frame_index], np.int64),
         }
@@ -213,6 +245,13 @@ class FusionCore:
                 retired=bool(t["retired"][k]),
             )
         self.trajectory = [np.asarray(p, np.float64) for p in np.asarray(state["trajectory"]).reshape(-1, 3)]
+        # Maps saved before poses were kept resume with positions and no orientation.
+        poses = np.asarray(state.get("poses", np.zeros((0, 7))), np.float64).reshape(-1, 7)
+        frames = np.asarray(state.get("pose_frames", np.zeros(0)), np.int64).reshape(-1)
+        if len(poses) != len(self.trajectory) or len(frames) != len(poses):
+            poses = np.column_stack([np.stack(self.trajectory), np.tile([0.0, 0.0, 0.0, 1.0], (len(self.trajectory), 1))]) if self.trajectory else np.zeros((0, 7))
+            frames = np.full(len(poses), -1, np.int64)
+        self.poses, self.pose_frames = list(poses), frames.tolist()
         self.surface = {}
         self._add_surface(np.asarray(state["surface"], np.float32).reshape(-1, 3))
         self.frames, self.updates, self.last_frame_index = (int(x) for x in np.asarray(state["counters"]))

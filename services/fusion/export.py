@@ -60,11 +60,14 @@ def run_summary(cfg: TrackGraphConfig, fusion, snapshot, *, frames: int, seconds
 
 SEGMENT_IDS_FILE = "segment_ids.npy"
 """Row k of the OpenLex3D export is segment ``segment_ids[k]``."""
+ROOMS_FILE = "rooms.npz"
+"""The rooms' footprints (:mod:`shared.graph.roomgrid`)."""
 
 
 def export_map(out: Path, fusion) -> None:
     """``mesh.ply`` with segment ids, the OpenLex3D prediction (point cloud, one embedding
-    per segment, a segment index per point) and each row's segment id."""
+    per segment, a segment index per point), each row's segment id and ``rooms.npz``, the
+    rooms' footprints."""
     from shared.eval.prediction import write_prediction
 
     chunk = fusion.full_mesh_chunk()
@@ -85,6 +88,12 @@ def export_map(out: Path, fusion) -> None:
     buf = io.BytesIO()
     np.save(buf, np.array([s.id for s in sorted(segs, key=lambda s: s.id)], np.int64))
     atomic_write_bytes(out / SEGMENT_IDS_FILE, buf.getvalue())
+    # The rooms' footprints, for `trackgraph eval rooms` (none before the first rebuild).
+    grid = fusion.room_grid()
+    if grid is not None:
+        from shared.graph.roomgrid import save_room_grid
+
+        save_room_grid(out / ROOMS_FILE, grid)
 
 
 def segment_embedding(segment, dim: int) -> Annotated[np.ndarray, "(D,) float32"]:

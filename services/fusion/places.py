@@ -79,6 +79,14 @@ class FreeSpaceParams:
     """Points lower than this above the floor are clutter the robot passes over."""
     obstacle_max_m: float = 1.8
     """Points higher than this above the floor (ceiling, lamps) do not block."""
+    wall_min_m: float = 1.4
+    """Bottom of the wall band: surfaces this high above the floor are walls (or tall
+    cabinets standing against them), not furniture. Tables, beds, sofas and chairs end below
+    it; on the synthetic scenes everything taller than 1.3 m but lamps and shelves hangs on
+    a wall."""
+    wall_max_m: float = 1.95
+    """Top of the wall band, kept under the top of a doorway (2.0-2.1 m in most buildings)
+    so that a door is a gap in the band, while the lintel above it is not seen."""
     place_height_m: float = 1.0
     """Height of the place nodes above the floor."""
     min_clearance_m: float = 0.2
@@ -107,6 +115,11 @@ class FreeSpaceMap:
     occupied: Annotated[np.ndarray, "(H, W) bool"]
     esdf: Annotated[np.ndarray, "(H, W) float32 metres, centre-to-centre distance to non-free"]
     feature: Annotated[np.ndarray, "(2, H, W) int32 nearest non-free cell of each cell"]
+    wall: Annotated[np.ndarray, "(H, W) bool"] | None = None
+    """Cells with a surface in the wall band (``wall_min_m`` to ``wall_max_m``)."""
+    interior: Annotated[np.ndarray, "(H, W) bool"] | None = None
+    """The floor inside the walls, furniture footprints included: what rooms divide. None
+    (use ``free``) when no wall was seen."""
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -250,6 +263,26 @@ def build_free_space(
     keep = np.setdiff1d(keep[keep > 0], border)
     free = np.isin(labels, keep)
 
+    # Rooms are bounded by walls, not by furniture: the floor under a table or bed belongs to
+    # its room. The wall band sees walls and not furniture; a doorway is a gap in it.
+    wall = _mark(shape, cells(pts[(h >= p.wall_min_m) & (h <= p.wall_max_m)]))
+    wall = ndimage.binary_closing(wall, structure=np.ones((3, 3), bool)) | wall
+    interior = None
+    if wall.any():
+        inside = (support | occupied | free) & ~wall
+        labels, _ = ndimage.label(inside, structure=_CROSS)
+        keep_in = np.unique(labels[free])
+        border_in = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+        keep_in = np.setdiff1d(keep_in[keep_in > 0], border_in)
+        interior = np.isin(labels, keep_in) | free
+        # Unseen patches enclosed by the room (under a table, behind a chair) are its floor;
+        # an enclosed patch with a wall in it is a pillar or a wall island and stays out.
+        holes, nh = ndimage.label(ndimage.binary_fill_holes(interior) & ~interior, structure=_CROSS)
+        if nh:
+            walled = np.zeros(nh + 1, bool)
+            walled[np.unique(holes[wall & (holes > 0)])] = True
+            interior |= (holes > 0) & ~walled[holes]
+
     edt, feature = ndimage.distance_transform_edt(free, return_indices=True)
     return FreeSpaceMap(
         origin_cell=origin_cell.astype(np.int64),
@@ -260,6 +293,8 @@ def build_free_space(
         occupied=occupied,
         esdf=(edt * res).astype(np.float32),
         feature=feature.astype(np.int32),
+        wall=wall,
+        interior=interior,
     )
 
 
@@ -457,3 +492,72 @@ def extract_places(
         owner=owner,
         nearest=nearest.astype(np.int32),
     )
+
+
+# ---------------------------------------------------------------- outlines
+
+
+def region_outline(
+    mask: Annotated[np.ndarray, "(h, w) bool one 4-connected region"],
+) -> Annotated[np.ndarray, "(B, 2) int64 cell-corner coordinates, counter-clockwise"]:
+    """The outer outline of a region of cells, as the corners where it turns.
+
+    Cell (i, j) is the square [i, i+1] x [j, j+1] (axis 0 is x). Each side of a region cell
+    facing a non-region cell is a directed edge that keeps the region on its left; the edges
+    chain into loops. The outer loop runs counter-clockwise and a hole's clockwise, so the
+    outline is the loop of the largest signed area."""
+    m = np.asarray(mask, bool)
+    if not m.any():
+        return np.zeros((0, 2), np.int64)
+    p = np.pad(m, 1)
+    i, j = np.nonzero(m)
+    pi, pj = i + 1, j + 1
+    # Per side: which cells expose it, and the start and end corner offsets.
+    sides = (
+        (~p[pi, pj - 1], 0, 0, 1, 0),  # bottom (y = j), walked +x
+        (~p[pi + 1, pj], 1, 0, 1, 1),  # right (x = i + 1), walked +y
+        (~p[pi, pj + 1], 1, 1, 0, 1),  # top, walked -x
+        (~p[pi - 1, pj], 0, 1, 0, 0),  # left, walked -y
+    )
+    si = np.concatenate([i[e] + a for e, a, _, _, _ in sides])
+    sj = np.concatenate([j[e] + b for e, _, b, _, _ in sides])
+    ei = np.concatenate([i[e] + c for e, _, _, c, _ in sides])
+    ej = np.concatenate([j[e] + d for e, _, _, _, d in sides])
+    nxt: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    for a, b, c, d in zip(si.tolist(), sj.tolist(), ei.tolist(), ej.tolist(), strict=True):
+        nxt.setdefault((a, b), []).append((c, d))
+    best, best_area = np.zeros((0, 2), np.int64), -np.inf
+    while nxt:
+        start = min(nxt)
+        loop, v = [start], start
+        while True:
+            outs = nxt[v]
+            w = outs.pop()
+            if not outs:
+                del nxt[v]
+            if w == start or w not in nxt:
+                break
+            loop.append(w)
+            v = w
+        pts = np.asarray(loop, np.int64)
+        area = 0.5 * float(np.sum(pts[:, 0] * np.roll(pts[:, 1], -1) - np.roll(pts[:, 0], -1) * pts[:, 1]))
+        if area > best_area:
+            best, best_area = pts, area
+    # Keep the corners only: drop vertices on a straight run.
+    prev, after = np.roll(best, 1, axis=0), np.roll(best, -1, axis=0)
+    cross = (best[:, 0] - prev[:, 0]) * (after[:, 1] - best[:, 1]) - (best[:, 1] - prev[:, 1]) * (after[:, 0] - best[:, 0])
+    return best[cross != 0]
+
+
+def place_outlines(
+    fs: FreeSpaceMap, owner: Annotated[np.ndarray, "(H, W) int32 place index per cell, -1 none"], n: int
+) -> list[Annotated[np.ndarray, "(B, 2) float64 world xy"]]:
+    """The outline of each place's free-space region (its geodesic cells), in world xy."""
+    out = [np.zeros((0, 2)) for _ in range(n)]
+    for k, box in enumerate(ndimage.find_objects(owner + 1, max_label=n)):
+        if box is None:
+            continue
+        corners = region_outline(owner[box] == k)
+        offset = np.array([box[0].start, box[1].start], np.int64)
+        out[k] = (corners + offset + fs.origin_cell).astype(np.float64) * fs.resolution
+    return out

@@ -42,6 +42,7 @@ from services.fusion.places import (
     PlaceLayout,
     extract_places,
     geodesic_owner,
+    place_outlines,
 )
 from shared.config.fusion import GraphConfig
 from shared.graph.scene import PlaceGraph
@@ -71,10 +72,14 @@ def segment_rooms(
     place_positions: Annotated[np.ndarray, "(P, 3) float world metres"],
     cfg: GraphConfig | None = None,
 ) -> RoomLayout:
-    """Rooms by erosion, seeding and regrowth of the free space (module docstring)."""
+    """Rooms by erosion, seeding and regrowth of the floor inside the walls (module docstring)."""
     cfg = cfg or GraphConfig()
     cell_area = fs.resolution**2
-    eroded = fs.free & (fs.esdf > cfg.room_erosion_m)
+    space = fs.free if fs.interior is None else fs.interior
+    # Distance to the nearest cell outside the room space: walls and unmapped floor, never
+    # furniture, so a furnished room keeps one core.
+    clearance = ndimage.distance_transform_edt(space) * fs.resolution
+    eroded = space & (clearance > cfg.room_erosion_m)
     comp, n = ndimage.label(eroded, structure=_CROSS)
     labels = np.full(fs.shape, -1, np.int32)
     keep = np.arange(1, n + 1)
@@ -83,7 +88,7 @@ def segment_rooms(
             labels[:] = -1
             break
         seeds = np.argwhere(np.isin(comp, keep))
-        owner = geodesic_owner(fs.free, seeds)
+        owner = geodesic_owner(space, seeds)
         seed_room = np.searchsorted(keep, comp[seeds[:, 0], seeds[:, 1]])
         labels = np.where(owner >= 0, seed_room[np.maximum(owner, 0)], -1).astype(np.int32)
         area = np.bincount(labels[labels >= 0], minlength=keep.size) * cell_area
@@ -106,7 +111,13 @@ def segment_rooms(
 
     pc = np.asarray(place_cells, np.int64).reshape(-1, 2)
     pos = np.asarray(place_positions, np.float64).reshape(-1, 3)
-    place_room = labels[pc[:, 0], pc[:, 1]].astype(np.int64) if pc.size else np.zeros(0, np.int64)
+    if pc.size and r:
+        # A place on free space the room space left out (past a gap in the wall band) takes
+        # the room of the nearest room cell.
+        _, near = ndimage.distance_transform_edt(labels < 0, return_indices=True)
+        place_room = labels[near[0][pc[:, 0], pc[:, 1]], near[1][pc[:, 0], pc[:, 1]]].astype(np.int64)
+    else:
+        place_room = np.full(pc.shape[0], -1, np.int64)
     centroids = np.zeros((r, 3))
     for k in range(r):
         mine = place_room == k
@@ -116,6 +127,36 @@ def segment_rooms(
             xy = fs.center_of(np.argwhere(labels == k)).mean(axis=0)
             centroids[k] = [xy[0], xy[1], fs.place_z]
     return RoomLayout(labels=labels, areas_m2=area, centroids=centroids, place_room=place_room)
+
+
+def room_boxes(
+    fs: FreeSpaceMap, rooms: RoomLayout, points: Annotated[np.ndarray, "(N, 3) float world metres"]
+) -> Annotated[np.ndarray, "(R, 2, 3) float64 min and max corner of each room"]:
+    """Each room's box: its footprint's cells in xy, from the floor to the highest surface
+    over the footprint or its walls (the ceiling, where it was seen) in z."""
+    r = len(rooms)
+    out = np.zeros((r, 2, 3))
+    if r == 0:
+        return out
+    c = fs.cell_of(points)
+    inside = (c[:, 0] >= 0) & (c[:, 1] >= 0) & (c[:, 0] < fs.shape[0]) & (c[:, 1] < fs.shape[1])
+    # The walls around a room stand on cells just outside it: a point within two cells of a
+    # room belongs to its box, so the box reaches the wall tops where no ceiling was seen.
+    dist, (ni, nj) = ndimage.distance_transform_edt(rooms.labels < 0, return_indices=True)
+    near = np.where(dist <= 2.0, rooms.labels[ni, nj], -1)
+    lab = np.full(len(points), -1, np.int64)
+    lab[inside] = near[c[inside, 0], c[inside, 1]]
+    top = np.full(r, fs.place_z)
+    mine = lab >= 0
+    np.maximum.at(top, lab[mine], points[mine, 2])
+    for k, box in enumerate(ndimage.find_objects(rooms.labels + 1, max_label=r)):
+        if box is None:
+            continue
+        lo = (np.array([box[0].start, box[1].start]) + fs.origin_cell) * fs.resolution
+        hi = (np.array([box[0].stop, box[1].stop]) + fs.origin_cell) * fs.resolution
+        out[k, 0] = [lo[0], lo[1], fs.floor_z]
+        out[k, 1] = [hi[0], hi[1], max(top[k], fs.floor_z)]
+    return out
 
 
 def match_by_distance(
@@ -178,6 +219,8 @@ class HierarchyBuilder:
         self._rooms: list[RoomNode] = []
         self._next_place = 0
         self._next_room = 0
+        self.room_ids = np.zeros(0, np.int64)
+        """Room id of each room index of the last build."""
 
     def restore(self, places: list[PlaceNode], rooms: list[RoomNode]) -> None:
         """Continue ids from a saved graph (after a restart)."""
@@ -190,9 +233,19 @@ class HierarchyBuilder:
         points: Annotated[np.ndarray, "(N, 3) float surface points of the whole map, world metres"],
         trajectory: Annotated[np.ndarray, "(M, 3) float camera positions"] | None = None,
         floor_z: float | None = None,
+        active: tuple[Annotated[np.ndarray, "(3,) camera position"], float] | None = None,
     ) -> Hierarchy:
+        """Places and rooms of the map; ``active`` (centre, radius) marks the places within
+        fusion's active window (all are active without it)."""
         layout = extract_places(points, trajectory, self.cfg, self.params, floor_z)
         rooms = segment_rooms(layout.freespace, layout.cells, layout.positions, self.cfg)
+        fs = layout.freespace
+        outlines = place_outlines(fs, layout.owner, len(layout))
+        if active is None:
+            is_active = np.ones(len(layout), bool)
+        else:
+            is_active = np.linalg.norm(layout.positions - np.asarray(active[0], np.float64)[None], axis=1) <= active[1]
+        boxes = room_boxes(fs, rooms, np.asarray(points, np.float64).reshape(-1, 3))
 
         prev_ids = np.array([p.id for p in self._places], np.int64)
         prev_pos = np.stack([p.position for p in self._places]) if self._places else np.zeros((0, 3))
@@ -214,13 +267,22 @@ class HierarchyBuilder:
                 position=layout.positions[k].astype(np.float64),
                 radius=float(layout.radii[k]),
                 room=int(rid[rooms.place_room[k]]) if rooms.place_room[k] >= 0 else None,
+                boundary=outlines[k],
+                active=bool(is_active[k]),
             )
             for k in range(len(layout))
         ]
         room_nodes = sorted(
-            (RoomNode(id=int(rid[k]), centroid=rooms.centroids[k].astype(np.float64)) for k in range(len(rooms))),
+            (
+                RoomNode(
+                    id=int(rid[k]), centroid=rooms.centroids[k].astype(np.float64),
+                    bbox_min=boxes[k, 0], bbox_max=boxes[k, 1], area_m2=float(rooms.areas_m2[k]),
+                )  # fmt: skip
+                for k in range(len(rooms))
+            ),
             key=lambda r: r.id,
         )
+        self.room_ids = rid.astype(np.int64)
         edges = [(int(pid[a]), int(pid[b])) for a, b in layout.edges]
 
         def locate(pts: np.ndarray) -> np.ndarray:

@@ -4,8 +4,9 @@ For every *synonym query* of the ground truth (its text is a synonym of one of i
 that names an object larger than ``min_size_m`` (the longest side of its ground-truth
 points' box), the map is asked through the query core, eq. 10 with the map's own encoder,
 exactly as ``trackgraph query MAP_DIR`` answers, and the top segment is a hit when it overlaps
-one of the query's objects with IoU >= 0.25 on ground-truth points (points matched within
-3 cm, as in ``shared.eval.openlex3d``).
+one of the query's objects with IoU >= 0.25 on ground-truth points (each ground-truth point takes
+its nearest predicted point within 3 cm: ``shared.eval.openlex3d``'s ``global`` alignment,
+not its default ``per_mask``).
 """
 
 from __future__ import annotations

@@ -2,7 +2,8 @@
 
 Predicted instances (the rows of ``index.npy``) are transferred onto the ground-truth points:
 each ground-truth point takes the instance of its nearest predicted point within
-``align_radius`` (0.03 m), exactly as for OpenLex3D retrieval. All IoUs are counted on
+``align_radius`` (0.03 m), the nearest-point (``global``) alignment of OpenLex3D retrieval,
+not its default ``per_mask``. All IoUs are counted on
 ground-truth points.
 
 - Ground truth: every object present in ``labels.npy`` with at least one synonym in

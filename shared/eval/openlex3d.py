@@ -1,47 +1,64 @@
 """OpenLex3D evaluation: top-N category frequencies (segmentation) and query retrieval AP.
 
-Follows the public OpenLex3D toolbox (``openlex3d/core/{categories,metric,io,align_masks,
-average_precision,cosine_similarity}.py``, ``scripts/evaluate_{segmentation,queries}.py``):
+Follows the public OpenLex3D toolbox at its default settings (``openlex3d/core/{categories,
+metric,io,align_masks,average_precision,cosine_similarity}.py``,
+``scripts/evaluate_{segmentation,queries}.py``, ``config/eval_{segmentation,query}.yaml``):
 
-**Segmentation.** The prediction is voxel-downsampled (0.05 m); every downsampled point takes
-the N prompts of the ground truth's prompt list with the highest cosine similarity to its
-feature. Every ground-truth point of a scored object takes its nearest downsampled point; if
-that is farther than 0.05 m the point is *missing*, otherwise its category is the first of
-synonyms > depictions > vis_sim > clutter > incorrect that any of the N labels hits (a label
-hits *clutter* when it is a synonym of one of the object's clutter ids). Labels are compared
-with spaces removed. Per object, each category's share of its points; each figure is the mean
-over objects. Objects without synonyms, not in ``gt_categories.json``, or named wall, floor,
-ceiling, doorframe, ledge or window ledge are not scored.
+**Segmentation.** The prediction is voxel-downsampled (0.05 m) on Open3D's voxel grid: cells
+``floor(p / 0.05)`` computed in the precision of the stored positions, float32 for every
+cloud this project writes (as Open3D's ``t.geometry.PointCloud.voxel_down_sample`` does; in
+float64 a coordinate near a cell boundary can land in the neighbouring cell). Every
+downsampled point takes the N prompts of the ground truth's prompt list with the highest
+cosine similarity to its feature. Every ground-truth point of a scored object takes its
+nearest downsampled point; if that is farther than 0.05 m the point is *missing*, otherwise
+its category is the first of synonyms > depictions > vis_sim > clutter > incorrect that any
+of the N labels hits (a label hits *clutter* when it is a synonym, a depiction or a
+visually-similar label of one of the object's clutter objects, as ``CategoriesHandler.
+_check_clutter``). Labels are compared with spaces removed. Per object, each category's share
+of its points; each figure is the mean over objects. Objects without synonyms, not in
+``gt_categories.json``, or named wall, floor, ceiling, doorframe, ledge or window ledge are not
+scored.
 
-**Retrieval.** Each ground-truth point takes the instance of its nearest predicted point
-(within ``align_radius``). Each query scores every predicted instance by cosine similarity,
-mapped to [0, 1] by (c + 1) / 2 and min-max normalised over the instances (range floored at
-1e-8); of its 10 best instances, those covering at least one ground-truth point become
-predictions with that score. Each (query, object id) pair is one ground-truth instance (as
-OpenLex3D's ``create_gt_instances``; not the union of the query's objects, which no single
-instance could match when a query names several objects); a prediction matches ground truth
-of its own query only. AP is ScanNet's greedy class-agnostic AP over all
-queries pooled (see :mod:`shared.eval.ap`): ``ap`` averages IoU 0.50:0.05:0.90; ``ap50`` and
-``ap25`` are reported too.
+**Retrieval.** Predicted instances are aligned to the ground-truth points (``alignment``):
+by default ``per_mask``, where a ground-truth point belongs to every instance that has a
+point within the threshold, so neighbouring instances may share points; or ``global``, where
+it belongs to the instance of its one nearest predicted point. The threshold
+(``alignment_threshold``, default 0.001) is compared with the *squared* distance, as
+OpenLex3D compares it with FAISS ``IndexFlatL2`` distances: 0.001 m² is a radius of
+sqrt(0.001) = 3.16 cm. An instance's size is the number of ground-truth points aligned to it.
+Each query scores every predicted instance by cosine similarity, mapped to [0, 1] by
+(c + 1) / 2 and min-max normalised over the instances (range floored at 1e-8); of its 10 best
+instances, those covering at least one ground-truth point become predictions with that
+score. Each (query, object id) pair is one ground-truth instance (as OpenLex3D's
+``create_gt_instances``; not the union of the query's objects, which no single instance could
+match when a query names several objects); a prediction matches ground truth of its own query
+only. AP is ScanNet's greedy class-agnostic AP over all queries pooled (see
+:mod:`shared.eval.ap`): ``ap`` averages IoU 0.50:0.05:0.90; ``ap50`` and ``ap25`` are reported
+too.
 
 Deliberate differences from OpenLex3D:
 
 1. Downsampling: OpenLex3D gives each voxel centroid the feature of the original point
    nearest to it; here each centroid carries its voxel's majority instance (ties: lowest
-   instance number). Voxel cells are ``floor(p / 0.05)`` (Open3D's tensor API).
+   instance number). Centroids are the exact means rounded to float32; Open3D sums in float32
+   in its own order, so they may differ from its centroids by a float32 step (about 1e-7 m),
+   which matters only for a ground-truth point that close to the 0.05 m association radius.
 2. Top-N ties are broken by prompt-list order (OpenLex3D's ``np.argsort`` leaves them to the
    sort algorithm). Top-N labels are computed once per instance, not per point (the same
    result, since all points of an instance share its feature).
-3. Mask alignment for retrieval uses a Euclidean radius of 0.03 m (``align_radius``).
-   OpenLex3D's config says ``alignment_threshold: 0.01`` but compares it with FAISS
-   ``IndexFlatL2`` distances, which are squared, i.e. an effective 0.1 m.
+3. Mask alignment compares the exact squared distance between the float32-rounded points
+   with the threshold; FAISS computes it in float32 (for many queries as
+   |x|² + |y|² - 2 x.y), so a point whose squared distance is within float32 rounding of the
+   threshold may fall on the other side. Ties between equally near predicted points
+   (``global``) go to whichever the k-d tree returns.
 4. Duplicate handling, thresholds and curve follow ScanNet/OpenLex3D exactly, but the IoU
    thresholds are the rounded values 0.50, 0.55, ..., 0.90 (``np.arange`` gives
    0.6000000000000001 and the like), which only matters for an IoU exactly on a threshold.
 5. Extra outputs OpenLex3D does not have: ``top1_hit_rate`` (share of *synonym queries*, whose
    text is a synonym of at least one of their objects, whose single best-scoring instance
-   overlaps one of the query's objects with IoU >= 0.25 on ground-truth points), counts, and
-   with ``details=True`` per-object and per-query breakdowns.
+   overlaps one of the query's objects with IoU >= 0.25 on the aligned ground-truth points),
+   the ``alignment`` and ``alignment_threshold`` used, counts, and with ``details=True``
+   per-object and per-query breakdowns.
 6. Undefined figures (no scored object, no query) are None instead of NaN, so the result
    serialises as strict JSON.
 7. The labelled ground-truth cloud is ``points.npy``/``labels.npy`` rather than a dataset
@@ -64,9 +81,24 @@ from typing import Annotated, Any
 import numpy as np
 
 from shared.eval.ap import MatchTable, ap_summary
-from shared.eval.cloud import contingency, nearest, transfer_instances, voxel_downsample
+from shared.eval.cloud import (
+    Alignment,
+    align_instances,
+    check_alignment,
+    cloud_file_dtype,
+    contingency,
+    nearest,
+    positions_dtype,
+    voxel_downsample,
+)
 from shared.eval.gt import EXCLUDED_LABELS, TIERS, GroundTruth, load_gt, strip_label
-from shared.eval.prediction import EMBEDDINGS_FILE, Prediction, load_prediction, oracle_prediction
+from shared.eval.prediction import (
+    CLOUD_FILES,
+    EMBEDDINGS_FILE,
+    Prediction,
+    load_prediction,
+    oracle_prediction,
+)
 from shared.eval.text import TextEncoder, check_dimension, cosine, default_encoder, encode_texts
 
 log = logging.getLogger(__name__)
@@ -79,8 +111,15 @@ VOXEL_SIZE = 0.05
 """Prediction downsampling for segmentation (m)."""
 ASSOCIATION_RADIUS = 0.05
 """A ground-truth point farther than this from every downsampled predicted point is missing (m)."""
+ALIGNMENT: Alignment = "per_mask"
+"""Default mask alignment for retrieval (OpenLex3D's ``masks.alignment_mode``)."""
+ALIGNMENT_THRESHOLD = 0.001
+"""Default alignment threshold (m², compared with the squared distance: a radius of 3.16 cm;
+OpenLex3D's ``masks.alignment_threshold``)."""
 ALIGN_RADIUS = 0.03
-"""Ground-truth point to predicted point alignment radius for retrieval (m)."""
+"""Euclidean radius (m) of the one-nearest-point matching that ``trackgraph eval queries``
+(``services/query/evaluate.py``) uses through :func:`shared.eval.cloud.transfer_instances`;
+the retrieval here aligns with ``ALIGNMENT`` and ``ALIGNMENT_THRESHOLD``."""
 TOP_K = 10
 """Predictions per retrieval query."""
 TOP1_IOU = 0.25
@@ -108,10 +147,13 @@ def label_tables(
         obj = gt.objects[int(oid)]
         for t, name in enumerate(TIERS):
             mark(t, row, obj.tier(name))
+        # OpenLex3D's _check_clutter: any synonym, depiction or visually similar label of
+        # a clutter object makes the label clutter (after this object's own tiers).
         for cid in obj.clutter:
             other = gt.objects.get(int(cid))
             if other is not None:
-                mark(CLUTTER, row, other.synonyms)
+                for name in TIERS:
+                    mark(CLUTTER, row, other.tier(name))
     return out
 
 
@@ -137,9 +179,14 @@ def segmentation_frequencies(
     voxel: float = VOXEL_SIZE,
     radius: float = ASSOCIATION_RADIUS,
     excluded: Sequence[str] = EXCLUDED_LABELS,
+    positions: np.dtype | None = None,
     details: bool = False,
 ) -> dict[str, Any]:
-    """OpenLex3D's top-N category frequencies (see the module docstring)."""
+    """OpenLex3D's top-N category frequencies (see the module docstring).
+
+    ``positions`` is the precision the prediction's cloud is stored in, which Open3D computes
+    its voxel grid in (None: float32 when every coordinate is a float32 value, else float64).
+    """
     object_ids = gt.evaluated_object_ids(excluded)
     n_obj = len(object_ids)
     result: dict[str, Any] = {c: None for c in CATEGORIES}
@@ -153,7 +200,7 @@ def segmentation_frequencies(
     rows = row[scored]
     gt_pts = gt.points[scored]
 
-    centroids, vox_inst = voxel_downsample(pred.points, pred.index, voxel)
+    centroids, vox_inst = voxel_downsample(pred.points, pred.index, voxel, dtype=positions_dtype(pred.points, positions))
     dist, nn = nearest(centroids, gt_pts)
     missing = dist > radius
     category = np.full(len(gt_pts), MISSING, np.int64)
@@ -216,18 +263,24 @@ def retrieval(
     query_emb: Annotated[np.ndarray, "(Q, D) float"],
     *,
     top_k: int = TOP_K,
-    align_radius: float = ALIGN_RADIUS,
+    alignment: Alignment = ALIGNMENT,
+    alignment_threshold: float = ALIGNMENT_THRESHOLD,
     details: bool = False,
 ) -> dict[str, Any]:
-    """Query retrieval AP and top-1 hit rate (see the module docstring)."""
+    """Query retrieval AP and top-1 hit rate (see the module docstring). ``alignment`` is
+    "per_mask" or "global"; ``alignment_threshold`` is a squared distance (m²)."""
     queries = gt.queries
-    aligned = transfer_instances(pred.points, pred.index, gt.points, align_radius)
+    point_of, inst_of = align_instances(pred.points, pred.index, gt.points, alignment_threshold, alignment)
     obj_ids, obj_of_point = np.unique(gt.labels, return_inverse=True)
     obj_of_point = np.where(gt.labels >= 0, obj_of_point.reshape(-1), -1)
     obj_size = np.bincount(obj_of_point[obj_of_point >= 0], minlength=len(obj_ids))
     k = pred.n_instances
-    inter = contingency(aligned, k, obj_of_point, len(obj_ids))  # (K, O_all)
-    inst_size = np.bincount(aligned[aligned >= 0], minlength=k)
+    # (K, O_all) from the aligned (point, instance) pairs: under per_mask a point may count
+    # for several instances, exactly as OpenLex3D intersects the per-instance index lists.
+    inter = contingency(inst_of, k, obj_of_point[point_of], len(obj_ids))
+    inst_size = np.bincount(inst_of, minlength=k)
+    covered = np.zeros(len(gt.points), bool)
+    covered[point_of] = True
     scores = query_scores(pred.embeddings, query_emb)  # (K, Q)
 
     def col(oid: int) -> int:
@@ -284,7 +337,9 @@ def retrieval(
     out["n_synonym_queries"] = len(top1)
     out["n_gt_instances"] = len(gt_col_a)
     out["n_predictions"] = len(pred_inst_a)
-    out["gt_points_aligned"] = float(np.mean(aligned >= 0)) if len(aligned) else 0.0
+    out["gt_points_aligned"] = float(np.mean(covered)) if len(covered) else 0.0
+    out["alignment"] = alignment
+    out["alignment_threshold"] = float(alignment_threshold)
     if details:
         out["per_query"] = per_query
     return out
@@ -300,18 +355,23 @@ def evaluate_openlex3d(
     *,
     top_n: int = 5,
     top_k: int = TOP_K,
-    align_radius: float = ALIGN_RADIUS,
+    alignment: Alignment = ALIGNMENT,
+    alignment_threshold: float = ALIGNMENT_THRESHOLD,
     details: bool = False,
 ) -> dict[str, Any]:
-    """Both OpenLex3D tasks on loaded inputs."""
+    """Both OpenLex3D tasks on loaded inputs (defaults: OpenLex3D's)."""
+    check_alignment(alignment, alignment_threshold)
     if pred.n_instances:
         check_dimension(pred.dim, encoder, pred.file(EMBEDDINGS_FILE))
     prompt_emb = encode_texts(encoder, gt.prompts)
     query_emb = encode_texts(encoder, [q.text for q in gt.queries])
     emb = pred.embeddings if pred.n_instances else np.zeros((0, int(encoder.dim)), np.float32)
+    stored = _stored_dtype(pred)
     pred = Prediction(pred.points, pred.index, emb, pred.root)
-    seg = segmentation_frequencies(pred, gt, prompt_emb, top_n=top_n, details=details)
-    ret = retrieval(pred, gt, query_emb, top_k=top_k, align_radius=align_radius, details=details)
+    seg = segmentation_frequencies(pred, gt, prompt_emb, top_n=top_n, positions=stored, details=details)
+    ret = retrieval(
+        pred, gt, query_emb, top_k=top_k, alignment=alignment, alignment_threshold=alignment_threshold, details=details
+    )
     out = {**seg, **ret}
     out["top_n"] = top_n
     out["n_pred_points"] = len(pred.points)
@@ -326,6 +386,8 @@ def eval_openlex3d(
     oracle: bool = False,
     encoder: TextEncoder | None = None,
     top_n: int = 5,
+    alignment: Alignment = ALIGNMENT,
+    alignment_threshold: float = ALIGNMENT_THRESHOLD,
     details: bool = False,
 ) -> dict[str, Any]:
     """OpenLex3D scores of the prediction in ``pred_dir`` against the ground truth in ``gt_dir``.
@@ -335,7 +397,11 @@ def eval_openlex3d(
     ``top1_hit_rate``, plus ``ap_per_threshold``, ``n_objects``, ``n_queries``,
     ``n_synonym_queries`` and other counts. With ``oracle`` the ground truth itself is scored
     as the prediction (``pred_dir`` is ignored). ``encoder`` defaults to the MiniLM encoder.
+    ``alignment`` ("per_mask" or "global") and ``alignment_threshold`` (m², compared with the
+    squared distance) choose the retrieval's mask alignment, echoed as the result's
+    ``alignment`` and ``alignment_threshold``; the defaults are OpenLex3D's.
     """
+    check_alignment(alignment, alignment_threshold)
     t0 = time.perf_counter()
     gt = load_gt(gt_dir)
     enc = encoder if encoder is not None else default_encoder()
@@ -345,7 +411,9 @@ def eval_openlex3d(
         if pred_dir is None:
             raise ValueError("pred_dir is required unless oracle=True")
         pred = load_prediction(pred_dir)
-    out = evaluate_openlex3d(pred, gt, enc, top_n=top_n, details=details)
+    out = evaluate_openlex3d(
+        pred, gt, enc, top_n=top_n, alignment=alignment, alignment_threshold=alignment_threshold, details=details
+    )
     out["oracle"] = bool(oracle)
     out["seconds"] = round(time.perf_counter() - t0, 3)
     log.info(
@@ -355,6 +423,14 @@ def eval_openlex3d(
         _fmt(out["ap"]), _fmt(out["ap50"]), _fmt(out["top1_hit_rate"]),
     )
     return out
+
+
+def _stored_dtype(pred: Prediction) -> np.dtype | None:
+    """The precision of the prediction's cloud file, when it came from one."""
+    if pred.root is None:
+        return None
+    path = next((pred.root / n for n in CLOUD_FILES if (pred.root / n).is_file()), None)
+    return cloud_file_dtype(path) if path is not None else None
 
 
 def _fmt(x: float | None) -> str:

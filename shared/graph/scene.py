@@ -211,6 +211,9 @@ class SceneGraph:
     def _place_close(self, old: PlaceNode, new: PlaceNode) -> bool:
         return (
             old.room == new.room
+            and old.active == new.active
+            and old.boundary.shape == new.boundary.shape
+            and np.allclose(old.boundary, new.boundary, rtol=0.0, atol=self.place_tolerance_m)
             and abs(old.radius - new.radius) <= self.place_tolerance_m
             and float(np.linalg.norm(old.position - new.position)) <= self.place_tolerance_m
         )

@@ -16,6 +16,9 @@ Vertices = Annotated[np.ndarray, ArraySpec(("float32",), (None, 3), finite=True)
 Colors = Annotated[np.ndarray, ArraySpec(("uint8",), (None, 3))]
 Faces = Annotated[np.ndarray, ArraySpec(("int32",), (None, 3))]
 VertexIds = Annotated[np.ndarray, ArraySpec(("int32",), (None,))]
+Polygon = Annotated[np.ndarray, ArraySpec(("float64",), (None, 2), finite=True)]
+Poses = Annotated[np.ndarray, ArraySpec(("float64",), (None, 7), finite=True)]
+FrameIndices = Annotated[np.ndarray, ArraySpec(("int64",), (None,))]
 
 
 class SegmentNode(Message):
@@ -75,6 +78,12 @@ class PlaceNode(Message):
     """Distance to the nearest obstacle (m)."""
     room: int | None = None
     """Room containing the place."""
+    boundary: Annotated[Polygon, METRES] = Field(default_factory=lambda: np.zeros((0, 2)))
+    """(B, 2) outline of the free space the place stands for (its geodesic region on the
+    free-space grid), world xy, counter-clockwise; empty if unknown."""
+    active: bool = False
+    """Within fusion's active window around the camera (Hydra's active flag): it may still
+    change; an inactive place is history."""
 
 
 class RoomNode(Message):
@@ -86,6 +95,12 @@ class RoomNode(Message):
     """Centroid of its places (m, world)."""
     name: str = ""
     """Optional label."""
+    bbox_min: Annotated[Vec3, METRES] | None = None
+    """Axis-aligned box corner of its free space, floor to ceiling (m, world); None if unknown."""
+    bbox_max: Annotated[Vec3, METRES] | None = None
+    """Axis-aligned box corner (m, world); None if unknown."""
+    area_m2: float = Field(0.0, ge=0)
+    """Area of its free-space footprint (m^2)."""
 
 
 class Edge(Message):
@@ -169,6 +184,11 @@ class GraphSnapshot(Message):
     """All edges."""
     mesh: MeshChunk | None = None
     """The mesh, if asked for: the active window's, or with ``whole_map`` the whole map's."""
+    trajectory: Annotated[Poses, METRES] = Field(default_factory=lambda: np.zeros((0, 7)))
+    """(M, 7) camera poses fused, ``x y z qx qy qz qw`` (world, camera-to-world), for the
+    agent layer; empty in replies that do not carry it."""
+    trajectory_frames: FrameIndices = Field(default_factory=lambda: np.zeros(0, np.int64))
+    """(M,) frame index of each ``trajectory`` row."""
     error: str | None = None
     """Why the mesh asked for is not in this reply (the graph still is), e.g. a whole-map mesh
     over the codec's array limits; None when the reply is everything asked for."""

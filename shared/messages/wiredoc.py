@@ -184,6 +184,9 @@ def _default(field) -> str:
         value = field.default
     if value is None:
         return "nil"
+    if isinstance(value, np.ndarray):
+        # An empty array default: its shape says what it is.
+        return "empty " + "x".join(str(n) for n in value.shape) + f" {value.dtype.name}"
     return json.dumps(value)
 
 

@@ -21,6 +21,16 @@ Rect = tuple[float, float, float, float]
 """x0, y0, x1, y1."""
 
 FURNISHED_KINDS = ("living", "bedroom", "office", "dining")
+ROOM_TYPES: dict[str, str] = {
+    "living": "living room",
+    "bedroom": "bedroom",
+    "office": "office",
+    "dining": "dining room",
+    "hall": "hall",
+    "corridor": "corridor",
+}
+"""Room kind -> the natural label ground truth gives it (``gt/rooms.json`` ``type``), the
+text a room-type query or a room's name is compared with."""
 SLAB = 0.05
 """Thickness of floor and ceiling slabs (m)."""
 

@@ -14,6 +14,7 @@ import numpy as np
 from shared.geometry import Intrinsics
 from shared.synth import writer
 from shared.synth.config import PRESETS, SynthConfig, preset_config
+from shared.synth.layout import ROOM_TYPES, Layout
 from shared.synth.vocabulary import prompt_list
 
 log = logging.getLogger(__name__)
@@ -45,6 +46,34 @@ def _progress(enabled: bool):
 
 def _rounded(a: np.ndarray, nd: int = 6) -> list:
     return np.round(np.asarray(a, np.float64), nd).tolist()
+
+
+ROOMS_FILE = "rooms.json"
+"""Room ground truth in ``gt/``: see :func:`rooms_json`."""
+ROOMS_FORMAT = "trackgraph-rooms"
+ROOMS_VERSION = 1
+
+
+def rooms_json(layout: Layout) -> dict:
+    """``gt/rooms.json``: each room's ``id`` (its index in the layout), ``name``, ``type`` (the
+    natural label of its kind, :data:`ROOM_TYPES`) and ``footprint``: the room's inner free
+    floor (wall faces, not centre lines), a counter-clockwise polygon of world xy metres."""
+    rooms = []
+    for i, r in enumerate(layout.rooms):
+        if r.kind not in ROOM_TYPES:
+            raise ValueError(f"room {r.name!r} has kind {r.kind!r}, which ROOM_TYPES has no label for")
+        x0, y0, x1, y1 = r.inner(layout.wall_thickness)
+        rooms.append({
+            "id": i, "name": r.name, "kind": r.kind, "type": ROOM_TYPES[r.kind],
+            "footprint": _rounded([[x0, y0], [x1, y0], [x1, y1], [x0, y1]]),
+        })  # fmt: skip
+    return {
+        "format": ROOMS_FORMAT,
+        "version": ROOMS_VERSION,
+        "frame": "world, metres, z up",
+        "footprint": "inner free floor of the room (inside the wall faces), counter-clockwise xy polygon",
+        "rooms": rooms,
+    }
 
 
 def generate(config: SynthConfig | str, seed: int, out_dir: str | Path, *, overwrite: bool = False,
@@ -171,6 +200,7 @@ def generate(config: SynthConfig | str, seed: int, out_dir: str | Path, *, overw
             "gt_points": int(len(cloud.points)),
         }
         writer.write_json(gt / "scene.json", scene)
+        writer.write_json(gt / ROOMS_FILE, rooms_json(layout))
 
         shots = [sheet[i] for i in sheet_idx]
         writer.write_bytes(staging / "contact_sheet.png", pictures.contact_sheet(shots, rc.depth_max, n_ids))

@@ -69,6 +69,11 @@ def test_ground_truth_tracks_give_ap50_090_on_small(small, tmp_path, capsys):
     scores = eval_instances(out, small)
     assert scores["ap50"] >= 0.9, scores
     assert scores["segments_per_object"] <= 1.1
+    # The rooms' footprints beside the map: the dining room and the hall of `small`.
+    from shared.eval.rooms import eval_rooms
+
+    rooms = eval_rooms(out, small / "gt")
+    assert rooms["f1"] == 1.0 and rooms["n_pred"] == rooms["n_gt"] == 2, rooms
 
 
 def test_tracker_at_default_noise_gives_ap50_070_on_small(small, tmp_path):
@@ -132,6 +137,9 @@ def test_resume_gives_the_uninterrupted_graph(small, tmp_path):
     got = resumed.snapshot()
 
     assert got.graph_seq == reference.graph_seq
+    # The agent layer's poses survive the restart, one per frame fused.
+    assert got.trajectory.shape == (n, 7) and got.trajectory_frames.tolist() == list(range(n))
+    np.testing.assert_allclose(got.trajectory, reference.trajectory, atol=1e-12)
     assert [(s.id, s.tracks) for s in got.segments] == [(s.id, s.tracks) for s in reference.segments]
     for a, b in zip(got.segments, reference.segments, strict=True):
         np.testing.assert_allclose(a.centroid, b.centroid, atol=1e-6)

@@ -286,3 +286,22 @@ def test_intrinsics_validation(kwargs: dict) -> None:
 def test_intrinsics_frozen() -> None:
     with pytest.raises(ValidationError):
         K.fx = 1.0  # type: ignore[misc]
+
+
+def test_matrix_to_quat_inverts_quat_to_matrix_everywhere() -> None:
+    from shared.geometry import matrix_to_quat, pose_row, quat_to_matrix
+
+    rng = np.random.default_rng(7)
+    qs = rng.standard_normal((500, 4))
+    # Half-turns about each axis: the trace is -1 and the scalar part zero.
+    qs = np.concatenate([qs, np.eye(4)[1:], [[1e-9, 1.0, 1.0, 0.0]]])
+    for q in qs:
+        q = q / np.linalg.norm(q)
+        got = matrix_to_quat(quat_to_matrix(q))
+        assert got[0] >= 0 and np.isclose(np.linalg.norm(got), 1.0)
+        np.testing.assert_allclose(got, q if q[0] >= 0 else -q, atol=1e-7)
+    # A 90 degree turn about z, scalar last: (0, 0, sin 45, cos 45).
+    T = np.eye(4)
+    T[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]
+    T[:3, 3] = [1, 2, 3]
+    np.testing.assert_allclose(pose_row(T), [1, 2, 3, 0, 0, np.sqrt(0.5), np.sqrt(0.5)], atol=1e-12)

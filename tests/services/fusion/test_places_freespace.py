@@ -163,3 +163,19 @@ def test_free_space_treats_unobserved_as_blocked():
     assert not fs.free[c[0, 0], c[0, 1]]
     assert not fs.free[c[1, 0], c[1, 1]]
     assert fs.free[c[2, 0], c[2, 1]]
+
+
+def test_region_outline_is_the_outer_counter_clockwise_corner_loop():
+    from services.fusion.places import region_outline
+
+    square = np.zeros((4, 4), bool)
+    square[1:3, 1:3] = True
+    assert region_outline(square).tolist() == [[1, 1], [3, 1], [3, 3], [1, 3]]
+    ell = np.zeros((5, 5), bool)
+    ell[0:3, 0] = ell[0, 0:3] = True
+    assert region_outline(ell).tolist() == [[0, 0], [3, 0], [3, 1], [1, 1], [1, 3], [0, 3]]
+    # A region around a hole: the outline is the outer loop, not the hole's (clockwise) one.
+    ring = np.ones((5, 5), bool)
+    ring[2, 2] = False
+    assert region_outline(ring).tolist() == [[0, 0], [5, 0], [5, 5], [0, 5]]
+    assert region_outline(np.zeros((3, 3), bool)).shape == (0, 2)

@@ -134,3 +134,60 @@ def test_locator_maps_points_to_place_ids():
     ids = h.places.locate(np.array([[1.0, 1.0, 0.5], [6.0, 1.5, 0.5]]))
     by_id = {p.id: p for p in h.places.nodes}
     assert by_id[int(ids[0])].room == 0 and by_id[int(ids[1])].room == 1
+
+
+def _box(lo, hi, step=0.05):
+    """The surface points of a piece of furniture: an axis-aligned box's faces."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    g = [np.arange(a, b + 1e-9, step) for a, b in zip(lo, hi, strict=True)]
+    pts = np.stack(np.meshgrid(*g, indexing="ij"), -1).reshape(-1, 3)
+    on_face = np.isclose(pts, lo).any(axis=1) | np.isclose(pts, hi).any(axis=1)
+    return pts[on_face]
+
+
+def furnished(door_lintel=True):
+    """Room A of :func:`flat` with a table and a sofa in the middle of it and a sideboard
+    along a wall (all under 1 m), and walls whose doorway has a lintel above 2.1 m."""
+    pts = flat()
+    if door_lintel:
+        lintel = _wall((4, 1.6), (4, 2.3), height=0.4)
+        pts = np.concatenate([pts, lintel + np.array([0, 0, 2.15])])
+    furniture = [((1.2, 1.2, 0), (2.8, 2.0, 0.75)), ((0.9, 2.6, 0), (3.1, 3.3, 0.9)), ((0.1, 0.1, 0), (2.0, 0.6, 0.9))]
+    return np.concatenate([pts, *(_box(lo, hi) for lo, hi in furniture)])
+
+
+def test_furniture_does_not_split_a_room():
+    cfg = GraphConfig()
+    layout = extract_places(furnished(), cfg=cfg)
+    fs = layout.freespace
+    # The eroded free space alone (the method before the wall band) falls apart around the
+    # table and the sofa: more than one core in room A.
+    from scipy import ndimage
+
+    cores, n = ndimage.label(fs.free & (fs.esdf > cfg.room_erosion_m))
+    a = fs.center_of(np.argwhere(cores > 0))[:, 0] < 4
+    assert len(np.unique(cores[cores > 0][a])) >= 2
+    rooms = segment_rooms(fs, layout.cells, layout.positions, cfg)
+    assert len(rooms) == 2
+    # Room A keeps the floor under its table: the footprint is the wall-bounded floor.
+    table = fs.cell_of(np.array([[2.0, 1.6]]))[0]
+    assert not fs.free[table[0], table[1]] and rooms.labels[table[0], table[1]] == 0
+    assert rooms.areas_m2[0] == pytest.approx(16.0, abs=1.6)
+
+
+def test_builder_outlines_places_and_boxes_rooms():
+    pts = furnished()
+    h = HierarchyBuilder(GraphConfig()).build(pts, active=(np.array([1.0, 1.0, 1.0]), 2.0))
+    fs = h.layout.freespace
+    for p in sorted(h.places.nodes, key=lambda p: p.id):
+        assert p.boundary.shape[0] >= 4 and p.boundary.shape[1] == 2
+        # The outline encloses the place's own cell (shoelace area > 0: counter-clockwise).
+        x, y = p.boundary[:, 0], p.boundary[:, 1]
+        assert 0.5 * np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y) > 0
+        assert x.min() <= p.position[0] <= x.max() and y.min() <= p.position[1] <= y.max()
+        assert p.active == (np.linalg.norm(p.position - [1.0, 1.0, 1.0]) <= 2.0)
+    assert any(p.active for p in h.places.nodes) and not all(p.active for p in h.places.nodes)
+    a, b = sorted(h.rooms, key=lambda r: r.bbox_min[0])
+    assert a.bbox_min[0] == pytest.approx(0.0, abs=0.15) and a.bbox_max[0] == pytest.approx(4.0, abs=0.15)
+    assert a.bbox_min[2] == pytest.approx(fs.floor_z) and a.bbox_max[2] == pytest.approx(2.5, abs=0.05)
+    assert b.bbox_max[0] == pytest.approx(8.0, abs=0.15) and a.area_m2 > b.area_m2 > 0

@@ -69,7 +69,7 @@ def test_prediction_shifted_10cm_is_all_missing(scene, tmp_path):
     pred_dir = write_pred(tmp_path / "map", pts + np.array([0.0, 0.0, 0.10]), index, emb)
     out = eval_openlex3d(pred_dir, gt_dir, encoder=scene.encoder)
     assert_categories(out, {"missing": 1.0})
-    # Retrieval: no ground-truth point lies within 3 cm of a predicted point.
+    # Retrieval: no ground-truth point lies within 3.16 cm (squared distance 0.001 m²) of a predicted point.
     assert out["ap"] == out["ap50"] == out["ap25"] == 0.0
     assert out["top1_hit_rate"] == 0.0
     assert out["gt_points_aligned"] == 0.0
@@ -162,7 +162,7 @@ def test_retrieval_ap_worked_by_hand(scene, tmp_path):
       "chair": cos 1, 0.8, 0   -> 1.0, 0.8, 0.0
       "table": cos 0, 0.6, 0   -> 0.0, 1.0, 0.0
     GT instances: (chair, 1000 pts), (table, 240 pts: the leg has no predicted point within
-    3 cm). IoU(P0, chair) = 1; IoU(P1, table) = 200 / 240 = 0.833.
+    3.16 cm). IoU(P0, chair) = 1; IoU(P1, table) = 200 / 240 = 0.833.
     IoU <= 0.80: both GT matched with score 1.0; FPs 0.8, 0, 0, 0 all score below -> AP 1.
     IoU 0.85, 0.90: the table is missed, P1 (score 1.0) becomes a FP. Scores: TP {1.0}, FP
     {1.0, 0.8, 0, 0, 0}, 1 hard FN. Curve (ascending distinct scores 0, 0.8, 1.0):
@@ -188,30 +188,44 @@ def test_retrieval_ap_worked_by_hand(scene, tmp_path):
 
 
 def test_duplicate_predictions_are_false_positives(scene, tmp_path):
-    """Query "chair" -> [1]. The chair is predicted as two halves A, B (500 points each) with
-    the same feature e_chair, plus the lamp L (e_lamp). Scores: A = B = 1, L = 0.
+    """Query "chair" -> [1]. The chair is predicted as two halves A (x < 0.1, 500 points) and
+    B (500 points) with the same feature e_chair, plus the lamp L (e_lamp). Scores: A = B = 1,
+    L = 0.
 
-    IoU(A, chair) = IoU(B, chair) = 500 / 1000 = 0.5.
-    AP25: A matches the chair (TP 1.0); B is a duplicate (FP 1.0); L overlaps nothing (FP 0.0).
-      Distinct scores 0, 1: (p 1/3, r 1), (p 1/2, r 1), then (1, 0); widths 0, 1/2, 1/2
-      -> AP25 = 1/2 * 1/2 + 1/2 = 0.75.   Without B it is (p 1/2, r 1), (1, 1), (1, 0) -> 1.0.
-    AP50: IoU 0.5 is not > 0.5, so nothing matches -> 0.
+    Under the default per_mask alignment (squared distance < 0.001 m², i.e. < 3.16 cm) each
+    half also takes the neighbouring half's first column (x = 0.085 and x = 0.105 lie 0.02 m
+    apart; the next column, 0.04 m, is out): A and B each cover 500 + 100 = 600 chair points.
+    IoU(A, chair) = IoU(B, chair) = 600 / (1000 + 600 - 600) = 0.6.
+    At IoU 0.25, 0.50, 0.55: A matches the chair (TP 1.0); B is a duplicate (FP 1.0); L
+      overlaps nothing (FP 0.0). Distinct scores 0, 1: (p 1/3, r 1), (p 1/2, r 1), then (1, 0);
+      widths 0, 1/2, 1/2 -> AP = 1/2 * 1/2 + 1/2 = 0.75.
+      Without B it is (p 1/2, r 1), (1, 1), (1, 0) -> 1.0.
+    At IoU 0.60 and above: 0.6 is not > 0.6, so nothing matches -> 0.
+    With global alignment (each point to its one nearest instance) each half covers its own
+    500 points: IoU 0.5, so AP50 is 0 and AP25 is 0.75.
     """
     gt_dir = scene.write(tmp_path / "seq", queries={"chair": [1]})
     enc, p = scene.encoder, scene.parts
     chair = p["chair"]
     left = chair[:, 0] < 0.1
 
-    def run(parts, embs, name):
+    def run(parts, embs, name, **kw):
         pts = np.concatenate(parts)
         index = np.concatenate([np.full(len(x), i) for i, x in enumerate(parts)])
-        return eval_openlex3d(write_pred(tmp_path / name, pts, index, np.stack(embs)), gt_dir, encoder=enc)
+        return eval_openlex3d(write_pred(tmp_path / name, pts, index, np.stack(embs)), gt_dir, encoder=enc, **kw)
 
-    dup = run([chair[left], chair[~left], p["lamp"]], [enc.mix({"chair": 1})] * 2 + [enc.mix({"lamp": 1})], "dup")
-    assert dup["ap25"] == pytest.approx(0.75)
-    assert dup["ap50"] == 0.0
+    halves = [chair[left], chair[~left], p["lamp"]]
+    feats = [enc.mix({"chair": 1})] * 2 + [enc.mix({"lamp": 1})]
+    dup = run(halves, feats, "dup")
+    assert dup["alignment"] == "per_mask" and dup["alignment_threshold"] == 0.001
+    per = dup["ap_per_threshold"]
+    assert per["0.25"] == pytest.approx(0.75) and per["0.50"] == pytest.approx(0.75) and per["0.55"] == pytest.approx(0.75)
+    assert per["0.60"] == 0.0 and per["0.90"] == 0.0
     single = run([chair[left], p["lamp"]], [enc.mix({"chair": 1}), enc.mix({"lamp": 1})], "single")
-    assert single["ap25"] == pytest.approx(1.0)
+    assert single["ap25"] == pytest.approx(1.0) and single["ap50"] == pytest.approx(1.0)
+    flat = run(halves, feats, "dup_global", alignment="global")
+    assert flat["alignment"] == "global"
+    assert flat["ap25"] == pytest.approx(0.75) and flat["ap50"] == 0.0
 
 
 def test_empty_prediction_scores_zero(scene, tmp_path):
