@@ -400,6 +400,8 @@ def agent_places(
     for s in range(0, traj.shape[0], chunk):
         xy = pos[s : s + chunk, None, :2]
         rows, cols = np.nonzero(np.all((xy >= lo[None]) & (xy <= hi[None]), axis=2))
+        if cols.size == 0:
+            continue  # no pose of this chunk within any outline's box
         order = np.argsort(cols, kind="stable")
         uniq, start = np.unique(cols[order], return_index=True)
         for j, grp in zip(uniq, np.split(rows[order] + s, start[1:]), strict=True):

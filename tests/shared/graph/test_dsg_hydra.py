@@ -326,3 +326,18 @@ def test_format_1_files_still_load(tmp_path):
     assert _bytes(back) == _bytes(want)
     # What format 1 had no room for reads as unknown.
     assert back.trajectory.shape == (0, 7) and back.places[0].boundary.shape == (0, 2) and not back.places[0].active
+
+
+def test_a_chunk_of_poses_outside_every_outline_goes_to_the_nearest_place():
+    # Chunks of 2 poses: the first chunk lies within no outline's box (the path the live map
+    # of a corrupt-frames test took), the second within p1's.
+    base = _snapshot(with_mesh=False)
+    far = np.array([[50.0, 50.0, 1.0, 0, 0, 0, 1], [51.0, 50.0, 1.0, 0, 0, 0, 1]])
+    traj = np.concatenate([far, base.trajectory[:2]])
+    snap = base.model_copy(update={"trajectory": traj, "trajectory_frames": np.arange(len(traj), dtype=np.int64)})
+    got = dsg.agent_places(snap, chunk=2)
+    centres = np.array([p.position for p in snap.places])
+    ids = np.array([p.id for p in snap.places])
+    nearest = ids[np.argmin(np.linalg.norm(centres[None] - far[:, None, :3], axis=2), axis=1)]
+    assert got[:2].tolist() == nearest.tolist()
+    assert got[2:].tolist() == dsg.agent_places(base.model_copy(update={"trajectory": base.trajectory[:2], "trajectory_frames": np.arange(2, dtype=np.int64)}), chunk=2).tolist()
