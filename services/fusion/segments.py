@@ -27,6 +27,15 @@ Decisions the paper leaves open, made here:
   leave duplicates that the active-window matching never revisits.
 - *Retired tracks* are still assigned: retirement stops propagation in 2D, but the geometry
   already fused for the track still needs a segment.
+
+Deviation (docs/method.md, F6; ``SegmentsConfig.containment``): rho_{q->i} of eq. 7, "the track
+lies inside the segment", weighs each vertex of V_q by the hypothesis weights,
+sum min(l_q, l_i) / sum l_q, instead of counting every vertex where the segment holds any
+hypothesis. Over a surface the segment was fused on before the track appeared the segment's
+weight is the larger one, and the two agree up to weighing each vertex by l_q. They part where
+the segment holds only stray weight (a mask boundary, a mask that once fused a rug with the
+floor) and the new track outweighs it, which is not a re-observation of the segment.
+rho_{i->q} counts as the paper does.
 """
 
 from __future__ import annotations
@@ -263,6 +272,8 @@ class _Incidence:
         self.starts = np.searchsorted(pt, np.arange(t + 1))
         self.weight = np.bincount(pt, pw, t)
         self.hyp_c = self.compact(hyp).astype(np.int32)
+        self.hyp_w = mesh.hyp_weights
+        """(V, K) weight of each slot of ``hyp_c`` (eq. 7's evidence overlap reads it)."""
         self.winner = self.compact(mesh.winners())
         self.wins = np.bincount(self.winner[self.winner >= 0], minlength=t)
         self.index = {int(tid): i for i, tid in enumerate(self.track_ids)}
@@ -448,12 +459,17 @@ class SegmentLayer:
         """The active segment track ``c`` belongs to under eq. 7 and the DINOv3 gate, or None."""
         vq = inc.vertices_of(c)
         cq = inc.hyp_c[vq]
-        segs = np.where(cq >= 0, seg_of[np.maximum(cq, 0)], -1)
+        slot_seg = np.where(cq >= 0, seg_of[np.maximum(cq, 0)], -1)
         # A vertex counts once per segment even if several of the segment's tracks are on it.
-        segs.sort(axis=1)
+        segs = np.sort(slot_seg, axis=1)
         segs[:, 1:][segs[:, 1:] == segs[:, :-1]] = -1
         ids, shared = np.unique(segs[segs >= 0], return_counts=True)
         theta = self.seg_cfg.theta_rho
+        evidence = self.seg_cfg.containment == "evidence"
+        if evidence:
+            wq = inc.hyp_w[vq]
+            lq = np.where(cq == c, wq, 0.0).sum(axis=1, dtype=np.float64)
+            lq_total = float(lq.sum())
         best_key: tuple | None = None
         best: int | None = None
         for sid, n in zip(ids.tolist(), shared.tolist(), strict=True):
@@ -462,6 +478,11 @@ class SegmentLayer:
             if sid not in sizes:
                 sizes[sid] = self._hypothesis_support(sid, inc)
             rho_q, rho_i = n / len(vq), n / sizes[sid]
+            if evidence and lq_total > 0:
+                # The share of the track's evidence that the segment's matches (SegmentsConfig.
+                # containment): stray hypotheses of the segment do not make the track its part.
+                li = np.where(slot_seg == sid, wq, 0.0).sum(axis=1, dtype=np.float64)
+                rho_q = float(np.minimum(lq, li).sum()) / lq_total
             if rho_q < theta and rho_i < theta:
                 continue
             sim = float(unit(dino) @ unit(self.segments[sid].dino))

@@ -50,7 +50,10 @@ E1 = np.array([0, 1, 0, 0], np.float32)
 
 
 def new_layer(reid: bool = False) -> SegmentLayer:
-    return SegmentLayer(SegmentsConfig(), ReidConfig(enabled=reid))
+    # The joins built here put a new track over a weaker one; they test the segment's state,
+    # not the matching, so they use eq. 7 as the paper counts it (test_segments_updater.py
+    # pins both ``containment`` modes).
+    return SegmentLayer(SegmentsConfig(containment="presence"), ReidConfig(enabled=reid))
 
 
 def test_active_historical_active() -> None:

@@ -49,7 +49,10 @@ def states(**dinos: np.ndarray) -> dict[int, TrackState]:
 
 
 def layer(**seg) -> SegmentLayer:
-    # Re-identification off: these tests pin the active-window rules alone.
+    # Re-identification off: these tests pin the active-window rules alone. They pin eq. 7 as
+    # the paper counts it (``containment: presence``) unless they say otherwise; the
+    # evidence-weighted rho_q->i has its own tests below.
+    seg.setdefault("containment", "presence")
     return SegmentLayer(SegmentsConfig(**seg), ReidConfig(enabled=False))
 
 
@@ -254,3 +257,80 @@ def test_large_track_ids_and_retired_tracks() -> None:
     assert ch.added == [0]
     assert lay.segments[0].tracks == {big, big + 1}
     np.testing.assert_array_equal(lay.vertex_segments(), np.zeros(45, np.int32))
+
+
+# -- rho_q->i weighted by evidence (SegmentsConfig.containment: evidence) ----------------------
+
+
+def _over_segment(
+    shared: list[tuple[int, float, float]],
+    n_new_only: int = 0,
+    l_new_only: float = 1.0,
+    containment: str = "evidence",
+) -> SegmentLayer:
+    """Segment 0 = track 1 (100 vertices of its own at l = 5); then track 2 arrives.
+
+    ``shared``: blocks of (vertex count, l of track 2, l of track 1) holding both tracks;
+    ``n_new_only`` more vertices hold only track 2 (at ``l_new_only``). Track 2's DINOv3 feature equals
+    the segment's, and rho_i->q stays far below theta_rho: only rho_q->i can decide.
+    """
+    lay = layer(containment=containment)
+    lay.update(build_mesh((100, [(1, 5.0)])), states(t1=E0))
+    blocks = [(100, [(1, 5.0)])] + [(n, [(2, lq), (1, li)]) for n, lq, li in shared]
+    if n_new_only:
+        blocks.append((n_new_only, [(2, l_new_only)]))
+    lay.update(build_mesh(*blocks), states(t1=E0, t2=E0))
+    return lay
+
+
+@pytest.mark.parametrize(("containment", "joins"), [("presence", True), ("evidence", False)])
+def test_stray_hypotheses_do_not_make_a_track_part_of_a_segment(containment: str, joins: bool) -> None:
+    """Track 1 left weak hypotheses (l = 0.3) over the 40 vertices where track 2 then wins at
+    l = 1 (a mask that once fused a rug with the floor): by presence track 2 lies inside the
+    segment (rho 1.0); by evidence only 0.3 of its weight is matched."""
+    lay = _over_segment([(40, 1.0, 0.3)], containment=containment)
+    assert lay.segment_of_track(2) == (0 if joins else 1)
+
+
+@pytest.mark.parametrize("containment", ["presence", "evidence"])
+def test_a_track_on_the_segments_own_surface_joins_in_both_modes(containment: str) -> None:
+    """Track 2 is weaker than track 1 on the 80 shared vertices (a new track over a surface the
+    segment was fused on) and alone on 20, at l = 0.5 throughout: rho_q->i is 0.8 both ways."""
+    lay = _over_segment([(80, 0.5, 2.0)], n_new_only=20, l_new_only=0.5, containment=containment)
+    assert lay.segment_of_track(2) == 0
+
+
+@pytest.mark.parametrize(("l_segment", "joins"), [(0.75, True), (0.7, False)])
+def test_evidence_rho_threshold(l_segment: float, joins: bool) -> None:
+    """sum min(l_q, l_i) / sum l_q = l_segment / 1.0 on every vertex of V_q; 0.75 passes (>=)."""
+    lay = _over_segment([(40, 1.0, l_segment)])
+    assert lay.segment_of_track(2) == (0 if joins else 1)
+
+
+def test_evidence_is_matched_vertex_by_vertex() -> None:
+    """The segment holds far more weight on V_q in total (20 x 10 + 20 x 0.1 against 40), but
+    only on half of its vertices: rho_q->i = (20 x 1 + 20 x 0.1) / 40 = 0.55."""
+    lay = _over_segment([(20, 1.0, 10.0), (20, 1.0, 0.1)])
+    # Track 2 wins only the 20 vertices where track 1 is weak, so it still reaches min_vertices.
+    assert lay.segment_of_track(2) == 1
+    lay = _over_segment([(20, 1.0, 10.0), (20, 1.0, 0.1)], containment="presence")
+    assert lay.segment_of_track(2) == 0
+
+
+def test_evidence_sums_the_weight_of_all_the_segments_tracks() -> None:
+    """Segment 0 holds tracks 1 and 3; on the 40 vertices track 2 wins at l = 1 each holds 0.5,
+    so the segment matches all of track 2's weight. With track 1 alone there, half of it."""
+    first = [(40, [(1, 3.0), (3, 1.0)]), (20, [(3, 2.0), (1, 1.9)])]
+    for hyps, joins in (([(2, 1.0), (1, 0.5), (3, 0.5)], True), ([(2, 1.0), (1, 0.5)], False)):
+        lay = layer(containment="evidence")
+        lay.update(build_mesh(*first), states(t1=E0, t3=E0))
+        assert lay.segments[0].tracks == {1, 3}
+        lay.update(build_mesh(*first, (40, hyps)), states(t1=E0, t2=E0, t3=E0))
+        assert lay.segment_of_track(2) == (0 if joins else 1)
+
+
+def test_evidence_leaves_the_segment_inside_the_track_to_presence() -> None:
+    """rho_i->q = 15 / 20 = 0.75 although track 2 outweighs the segment on the shared vertices
+    (a fuller new view of a segment seen less): the segment joins the track in both modes."""
+    lay = _two_step(15, 5, 30, containment="evidence")
+    assert lay.segment_of_track(2) == 0
