@@ -8,10 +8,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
+
+log = logging.getLogger(__name__)
 
 
 class CommandError(Exception):
@@ -159,8 +162,17 @@ def _cmd_eval_rooms(args: argparse.Namespace) -> int:
 
     if not 0 < args.iou <= 1:
         raise CommandError(f"--iou must be in (0, 1], got {args.iou}")
-    result = eval_rooms(args.pred, args.gt, iou=args.iou)
-    keys = ["precision", "recall", "f1", "n_pred", "n_gt", "over_segmented", "under_segmented", "mean_iou", "type_accuracy"]
+    rank = None
+    if (Path(args.pred) / "graph").is_dir():
+        from services.query.core import QueryError
+        from services.query.roomtypes import map_room_ranker
+
+        try:
+            rank = map_room_ranker(args.pred)
+        except QueryError as exc:
+            raise CommandError(f"{args.pred}: the room-type queries cannot run: {exc}") from None
+    result = eval_rooms(args.pred, args.gt, iou=args.iou, rank_rooms=rank)
+    keys = ["precision", "recall", "f1", "n_pred", "n_gt", "over_segmented", "under_segmented", "mean_iou", "type_accuracy", "room_type_top1"]
     _print_metrics(result, args.json, keys)
     if not args.json:
         from rich.console import Console
@@ -173,6 +185,14 @@ def _cmd_eval_rooms(args: argparse.Namespace) -> int:
             best = "none" if r["best_pred_id"] is None else f"{r['best_pred_id']}" + (f" ({r['best_pred_name']})" if r["best_pred_name"] else "")
             table.add_row(r["gt_name"], r["gt_type"], best, f"{r['iou']:.3f}", "no" if r["matched_pred_id"] is None else "yes")
         Console().print(table)
+        if result["room_queries"]:
+            table = Table(show_header=True, header_style="bold", title='"which room is X": the top room for each ground-truth type')
+            for col in ("query", "top room", "its ground-truth room", "hit"):
+                table.add_column(col)
+            for q in result["room_queries"]:
+                top = "none" if q["top_room"] is None else f"{q['top_room']}" + (f" ({q['top_name']})" if q["top_name"] else "")
+                table.add_row(q["query"], top, "unmatched" if q["gt_room"] is None else f"{q['gt_room']} ({q['gt_type']})", "yes" if q["hit"] else "no")
+            Console().print(table)
     return 0
 
 
@@ -268,10 +288,15 @@ def _query_request(args: argparse.Namespace, text: str | None):
         raise CommandError("give a query TEXT or --image FILE (one of them)")
     if (args.near is None) != (args.radius is None):
         raise CommandError("--near X Y Z and --radius R go together")
+    if args.in_room is not None and args.room is not None:
+        raise CommandError("--in-room TEXT and --room ID both choose the room: give one of them")
+    if args.rooms and args.in_room is not None:
+        raise CommandError("--in-room TEXT filters segments; --rooms ranks the rooms themselves: give one of them")
     try:
         return QueryRequest(
-            text=text, image=image, top_k=args.top_k, room=args.room, radius=args.radius, gallery=args.gallery,
-            center=None if args.near is None else np.asarray(args.near, np.float64),
+            text=text, image=image, top_k=args.top_k, room=args.room, room_text=args.in_room, radius=args.radius,
+            gallery=args.gallery, center=None if args.near is None else np.asarray(args.near, np.float64),
+            target="rooms" if args.rooms else "segments",
         )  # fmt: skip
     except ValueError as exc:
         raise CommandError(f"bad query: {'; '.join(str(exc).splitlines()[:2])}") from None
@@ -298,6 +323,34 @@ def _print_hits(hits, as_json: bool, title: str) -> None:
             "-" if h.best_track is None else str(h.best_track),
         )  # fmt: skip
     Console().print(table if hits else f"{title}: no segments")
+
+
+def _print_rooms(rooms, as_json: bool, title: str) -> None:
+    from services.query.core import room_rows
+
+    rows = room_rows(rooms)
+    if as_json:
+        print(json.dumps(rows))
+        return
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=title, show_header=True, header_style="bold")
+    for col in ("rank", "room", "name", "score", "margin", "centroid (m)", "size (m)"):
+        table.add_column(col, justify="left" if col in ("name", "centroid (m)", "size (m)") else "right")
+    for i, (h, r) in enumerate(zip(rooms, rows, strict=True), 1):
+        size = "-" if r["bbox"] is None else " x ".join(f"{b - a:.2f}" for a, b in zip(*r["bbox"], strict=True))
+        table.add_row(
+            str(i), str(h.room), h.name or "-", f"{h.score:.3f}", "-" if h.margin is None else f"{h.margin:+.3f}",
+            " ".join(f"{v:+.2f}" for v in r["centroid"]), size,
+        )  # fmt: skip
+    Console().print(table if rooms else f"{title}: no room has a feature yet")
+
+
+def _chosen_room(rooms) -> str:
+    """``room N (name, score)`` of the room a ``--in-room`` query took (the best-ranked)."""
+    best = rooms[0]
+    return f"room {best.room} ({best.name or 'unnamed'}, {best.score:.3f})"
 
 
 def _cmd_query(args: argparse.Namespace) -> int:
@@ -335,7 +388,18 @@ def _cmd_query(args: argparse.Namespace) -> int:
         where = str(map_dir)
     if reply.error is not None:
         raise CommandError(f"query refused: {reply.error}")
-    _print_hits(reply.hits, args.json, f"{text or args.image} ({where})")
+    title = f"{text or args.image} ({where})"
+    if args.rooms:
+        _print_rooms(reply.rooms, args.json, title)
+        return 0
+    if args.in_room is not None and reply.rooms:
+        chosen = _chosen_room(reply.rooms)
+        if args.json:
+            # stdout stays the contract's list of hit rows; which room was taken goes to the log.
+            log.info("--in-room %r: %s", args.in_room, chosen)
+        else:
+            print(f"in {chosen}")
+    _print_hits(reply.hits, args.json, title)
     return 0
 
 
@@ -644,12 +708,14 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--json", action="store_true", help='JSON instead of the table: {"robot", "services": {NAME: {ServiceStatus fields..., "age_s", "summary"}}}, one line per second (once with --once)')
     st.set_defaults(func=_cmd_status)
 
-    q = sub.add_parser("query", help='ranked segments for a text or image query: MAP_DIR "TEXT", or --live "TEXT"')
+    q = sub.add_parser("query", help='ranked segments (or with --rooms rooms) for a text or image query: MAP_DIR "TEXT", or --live "TEXT"')
     q.add_argument("args", nargs="*", metavar="[MAP_DIR] TEXT", help='a saved map and the query, or only the query with --live')
     q.add_argument("--live", action="store_true", help="ask the running query service over Zenoh")
     q.add_argument("--image", type=Path, metavar="FILE", help="an image query instead of text")
     q.add_argument("--top-k", type=int, metavar="K")
     q.add_argument("--room", type=int, metavar="ID", help="only segments in this room")
+    q.add_argument("--in-room", metavar="TEXT", help='only segments in the room that best matches TEXT (e.g. "kitchen"); not with --room')
+    q.add_argument("--rooms", action="store_true", help='rank the rooms instead of the segments ("which room is the kitchen")')
     q.add_argument("--near", type=float, nargs=3, metavar=("X", "Y", "Z"), help="only segments within --radius of this point")
     q.add_argument("--radius", type=float, metavar="M")
     q.add_argument("--gallery", choices=["max", "mean"], help="eq. 10 max over the gallery (default) or the mean feature")
@@ -657,7 +723,7 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--connect", action="append", metavar="ENDPOINT", help="live: router endpoint(s)")
     q.add_argument("--robot", metavar="ID", help="live: robot id (default: the config's)")
     q.add_argument("--timeout", type=float, metavar="S", help="live: seconds to wait for the answer (the request's deadline is a little under it)")
-    q.add_argument("--json", action="store_true", help='print [{"segment", "score", "centroid", "bbox", "room", "best_track"}]')
+    q.add_argument("--json", action="store_true", help='print [{"segment", "score", "centroid", "bbox", "room", "best_track"}]; with --rooms [{"room", "score", "margin", "name", "centroid", "bbox"}]')
     q.set_defaults(func=_cmd_query)
 
     c = sub.add_parser("config", help="inspect and validate config files")

@@ -90,8 +90,15 @@ def run_map(
         tracker_core = build_tracker(cfg)
         if asks_for_keyframes(cfg):
             sessions.append(KeyframeVLSession(bus, build_keyframe_vl(cfg)))
+        elif getattr(tracker_core, "encoder", None) is not None:
+            # A tracker that embeds its own crops (the oracle) answers vl/embed here, so the
+            # rooms are named in the space of its galleries.
+            _serve_embed(bus, tracker_core.encoder, cfg.keyframe_vl.embed_cache_size)
         tracker = TrackerSession(bus, pipeline_cfg, tracker_core, wait_for_masks=True)
         fusion = FusionSession(bus, pipeline_cfg, FusionCore(cfg.fusion, device=cfg.tracker.device))
+        # Before the first frame, so every update names its rooms (in one process vl/embed
+        # answers at once; without keyframe_vl the rooms keep features and no names).
+        fusion.fetch_room_labels()
         source = SourceSession(bus, reader, replay)
         sessions += [tracker, fusion, source]
         if save_tracks:
@@ -129,6 +136,15 @@ def run_map(
     atomic_write_text(out / "run.json", json.dumps(summary, indent=2))
     log.info("mapped %d frames in %.1f s (%.2f Hz): %d segments", stats.planned, seconds, summary["hz"] or 0, summary["segments"])
     return summary
+
+
+def _serve_embed(bus, encoder, cache_size: int) -> None:
+    from services.keyframe_vl.embedder import Embedder
+    from shared.messages.rpc import EmbedReply, EmbedRequest
+    from shared.topics import Topics
+
+    embedder = Embedder(encoder, cache_size)
+    bus.serve(Topics(bus.robot_id).vl_embed, EmbedRequest, EmbedReply, lambda env: embedder.embed(env.body))
 
 
 def _wait_finished(bus, tracker, fusion, keyframe_timeout_s: float) -> None:

@@ -64,3 +64,10 @@ class VLEncoder(Protocol):
     def encode_image(self, rgb: Annotated[np.ndarray, "(H, W, 3) uint8"]) -> Annotated[np.ndarray, "(D,) float32"]:
         """A whole image (an image query)."""
         ...
+
+    def encode_view(self, image: KeyframeImage) -> Annotated[np.ndarray, "(D,) float32"]:
+        """The whole keyframe, L2-normalised: what the place looks like (room naming).
+
+        Optional: a caller that finds no ``encode_view`` on an encoder sends no view (the
+        keyframe's ``MaskFeatures.view`` stays None)."""
+        ...

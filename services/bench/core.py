@@ -43,6 +43,7 @@ HIERARCHY_RUN = "3cm"
 """The run whose rooms the hierarchy table scores (the other quality tables' run)."""
 HIERARCHY_KEYS = (
     "n_pred", "n_gt", "precision", "recall", "f1", "over_segmented", "under_segmented", "mean_iou", "type_accuracy",
+    "room_type_top1",
 )  # fmt: skip
 RATE_START_SHARE = 0.75
 """The rate search starts at this share of the mode's in-process rate: the distributed system
@@ -81,6 +82,18 @@ def _rate_search(
     return search_rate(trial, start, trials)
 
 
+def _room_ranker(map_dir: Path):
+    """The query core's room ranking on the map, or None where it cannot be built (logged)."""
+    from services.query.core import QueryError
+    from services.query.roomtypes import map_room_ranker
+
+    try:
+        return map_room_ranker(map_dir)
+    except (QueryError, OSError, ValueError) as exc:
+        log.warning("hierarchy table: no room-type queries for %s: %s", map_dir, exc)
+        return None
+
+
 def evaluate_hierarchy(map_dir: Path, gt: Path) -> dict[str, Any]:
     """The rooms of ``map_dir`` against the ground truth (``shared.eval.rooms``): precision,
     recall and F1 at IoU 0.5, over/under-segmentation, mean IoU and type accuracy. A map without ``rooms.npz``, or ground truth
@@ -89,10 +102,10 @@ def evaluate_hierarchy(map_dir: Path, gt: Path) -> dict[str, Any]:
     from shared.eval.rooms import eval_rooms
 
     out: dict[str, Any] = {k: None for k in HIERARCHY_KEYS}
-    out.update(n_types=None, per_room=[], error=None)
+    out.update(n_types=None, per_room=[], room_queries=None, error=None)
     try:
-        rooms = eval_rooms(map_dir, gt)
-        out.update({k: rooms[k] for k in HIERARCHY_KEYS}, per_room=rooms["per_room"])
+        rooms = eval_rooms(map_dir, gt, rank_rooms=_room_ranker(map_dir))
+        out.update({k: rooms[k] for k in HIERARCHY_KEYS}, per_room=rooms["per_room"], room_queries=rooms["room_queries"])
         out["n_types"] = len({r["gt_type"] for r in rooms["per_room"]})
     except EvalInputError as exc:
         out["error"] = str(exc)

@@ -161,11 +161,13 @@ def hierarchy_table(rows: list[dict[str, Any]] | None) -> list[str]:
         return []
     lines = ["", "## Hierarchy (rooms against the ground truth, 3 cm)", ""]
     lines += _table(
-        ["config", "rooms predicted / GT", "precision", "recall", "F1 @ 0.5", "over-segmented", "under-segmented", "mean IoU"],
+        ["config", "rooms predicted / GT", "precision", "recall", "F1 @ 0.5", "over-segmented", "under-segmented", "mean IoU",
+         "named right", "type top-1"],
         [[
             r["config"], "n/a" if r.get("n_pred") is None else f"{r['n_pred']} / {r['n_gt']}", _f(r.get("precision")), _f(r.get("recall")),
             _f(r.get("f1")), "n/a" if r.get("over_segmented") is None else str(r["over_segmented"]),
             "n/a" if r.get("under_segmented") is None else str(r["under_segmented"]), _f(r.get("mean_iou")),
+            _f(r.get("type_accuracy")), _f(r.get("room_type_top1")),
         ] for r in rows],
     )  # fmt: skip
     lines += [
@@ -173,8 +175,8 @@ def hierarchy_table(rows: list[dict[str, Any]] | None) -> list[str]:
         "Ground-truth rooms are their inner floor, predicted rooms `rooms.npz`'s cells, IoU counted in cells and "
         "matched one-to-one at IoU >= 0.5. Over-segmented: ground-truth rooms split among 2 or more predicted rooms "
         "(each with >= 20% of its cells inside); under-segmented: predicted rooms holding >= 20% of 2 or more "
-        "ground-truth rooms. Type top-1: the room whose feature best matches a room type's text is matched to a "
-        "room of that type.",
+        "ground-truth rooms. Named right: matched rooms whose name is the ground-truth type. Type top-1: for each "
+        "room type of the scene, the room whose feature best matches its text is matched to a room of that type.",
     ]
     for r in rows:
         if r.get("error"):

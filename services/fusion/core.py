@@ -14,16 +14,22 @@ from typing import Annotated, Any
 import numpy as np
 
 from services.fusion.hypotheses import confidence
+from services.fusion.roomnames import (
+    VIEW_SAMPLE_STRIDE,
+    RoomVocabulary,
+    describe_rooms,
+    view_shares,
+)
 from services.fusion.rooms import Hierarchy, HierarchyBuilder
 from services.fusion.segments import SegmentLayer
 from services.fusion.tsdf import HypothesisTSDF
 from services.fusion.types import HypothesisMesh, TrackState
 from shared.config.fusion import FusionConfig
-from shared.geometry import pose_row
+from shared.geometry import backproject, pose_row
 from shared.graph.roomgrid import RoomGrid
 from shared.graph.scene import SceneGraph
 from shared.messages.frames import TrackedFrame
-from shared.messages.graph import GraphDelta, GraphSnapshot, MeshChunk
+from shared.messages.graph import GraphDelta, GraphSnapshot, MeshChunk, RoomNode, SegmentNode
 from shared.messages.keyframes import TrackFeatures
 
 log = logging.getLogger(__name__)
@@ -47,6 +53,13 @@ class FusionCore:
         """(7,) ``x y z qx qy qz qw`` of each fused frame, for the agent layer."""
         self.pose_frames: list[int] = []
         self.last_hierarchy: Hierarchy | None = None
+        self.views: dict[int, np.ndarray] = {}
+        """Keyframe index -> its whole-image embedding (``TrackFeatures.view``), for room features."""
+        self.view_points: dict[int, np.ndarray] = {}
+        """Keyframe index -> (N, 2) float32 world xy of a sparse sample of its depth: what the
+        view shows, to give it to a room."""
+        self.room_vocabulary: RoomVocabulary | None = None
+        """The room labels' text embeddings; set by the session once ``vl/embed`` answers."""
         self.surface: dict[tuple[int, int, int], np.ndarray] = {}
         self.frames = 0
         self.updates = 0
@@ -70,6 +83,8 @@ class FusionCore:
             self._track(tid).displaced_weight += float(w)
         for o in tf.tracks:
             self._track(o.track_id)
+        if tf.keyframe:
+            self.view_points[int(fr.frame_index)] = _seen_xy(fr)
         position = fr.T_world_cam[:3, 3].copy()
         self.tsdf.update_window(position)
         self.trajectory.append(position)
@@ -90,6 +105,14 @@ class FusionCore:
             st.clip_count = f.clip_count
         for tid in msg.retired:
             self._track(tid).retired = True
+        if msg.view is not None:
+            self.views[int(msg.frame_index)] = np.asarray(msg.view, np.float32)
+
+    def set_room_vocabulary(self, labels: list[str], embeddings: Annotated[np.ndarray, "(L, D) float32"]) -> None:
+        """The room labels (``GraphConfig.room_labels``) and their text embeddings: rooms are
+        named from the next update on."""
+        emb = np.asarray(embeddings, np.float32).reshape(len(labels), -1)
+        self.room_vocabulary = RoomVocabulary(tuple(labels), emb / np.maximum(np.linalg.norm(emb, axis=1, keepdims=True), 1e-12))
 
     def _track(self, tid: int) -> TrackState:
         st = self.tracks.get(tid)
@@ -126,7 +149,37 @@ class FusionCore:
             rooms=rooms,
             mesh=self.mesh_chunk() if with_mesh else None,
             frame_index=self.last_frame_index,
+            describe_rooms=self._describe_rooms,
         )
+
+    def _view_shares(self, order: list[int]) -> tuple[Annotated[np.ndarray, "(K, R) float64"], Annotated[np.ndarray, "(K, D) float32"]]:
+        """What share of each keyframe view falls in each room of ``order``, and the views."""
+        h = self.last_hierarchy
+        none = np.zeros((0, len(order))), np.zeros((0, 0), np.float32)
+        if h is None or not self.views or not order:
+            return none
+        at = {f: k for k, f in enumerate(self.pose_frames)}
+        frames = [f for f in sorted(self.views) if f in at]
+        dims = {self.views[f].shape[0] for f in frames}
+        if len(dims) > 1:
+            log.warning("keyframe views of %s dimensions; room features use none of them", sorted(dims))
+            return none
+        fs = h.layout.freespace
+        lab, ids = h.room_layout.labels, self.hierarchy.room_ids
+        empty = np.zeros((0, 2), np.float32)
+        shares = [
+            view_shares(lab, ids, order, fs.cell_of(self.view_points.get(f, empty)), fs.cell_of(self.poses[at[f]][None, :2])[0], fs.resolution)
+            for f in frames
+        ]  # fmt: skip
+        if not shares:
+            return none
+        return np.stack(shares), np.stack([self.views[f] for f in frames])
+
+    def _describe_rooms(
+        self, segments: dict[int, SegmentNode], rooms: dict[int, RoomNode], previous: dict[int, RoomNode]
+    ) -> dict[int, RoomNode]:
+        shares, views = self._view_shares(sorted(rooms))
+        return describe_rooms(rooms, segments, shares, views, self.room_vocabulary, self.cfg.graph.room_view_weight, previous)
 
     def finish(self) -> GraphDelta:
         """A last update after the final frame, so nothing fused is left out of the graph."""
@@ -179,7 +232,7 @@ class FusionCore:
             return None
         ids = self.hierarchy.room_ids
         lab = h.room_layout.labels
-        names = {r.id: r.name for r in h.rooms}
+        names = {r.id: r.name for r in self.graph.rooms.values()}
         return RoomGrid(
             labels=np.where(lab >= 0, ids[np.maximum(lab, 0)] if ids.size else -1, -1).astype(np.int32),
             origin=h.layout.freespace.origin.astype(np.float64),
@@ -226,6 +279,13 @@ class FusionCore:
             "poses": np.stack(self.poses) if self.poses else np.zeros((0, 7)),
             "pose_frames": np.asarray(self.pose_frames, np.int64),
             "surface": self.surface_points(),
+            "views": {
+                "frames": np.asarray(sorted(self.views), np.int64),
+                "features": np.stack([self.views[f] for f in sorted(self.views)]) if self.views else np.zeros((0, 0), np.float32),
+                "seen_frames": np.asarray(sorted(self.view_points), np.int64),
+                "seen_counts": np.asarray([len(self.view_points[f]) for f in sorted(self.view_points)], np.int64),
+                "seen_xy": np.concatenate([self.view_points[f] for f in sorted(self.view_points)]) if self.view_points else np.zeros((0, 2), np.float32),
+            },
             "counters": np.asarray([self.frames, self.updates, self.last_frame_index], np.int64),
         }
 
@@ -254,10 +314,31 @@ class FusionCore:
         self.poses, self.pose_frames = list(poses), frames.tolist()
         self.surface = {}
         self._add_surface(np.asarray(state["surface"], np.float32).reshape(-1, 3))
+        # Maps saved before keyframe views were kept resume without them.
+        views = state.get("views") or {}
+        vf = np.asarray(views.get("frames", np.zeros(0)), np.int64).reshape(-1)
+        feats = np.asarray(views.get("features", np.zeros((0, 0))), np.float32)
+        self.views = {int(f): feats[k].copy() for k, f in enumerate(vf.tolist())} if len(vf) == len(feats) else {}
+        sf = np.asarray(views.get("seen_frames", np.zeros(0)), np.int64).reshape(-1)
+        counts = np.asarray(views.get("seen_counts", np.zeros(0)), np.int64).reshape(-1)
+        xy = np.asarray(views.get("seen_xy", np.zeros((0, 2))), np.float32).reshape(-1, 2)
+        self.view_points = {}
+        if len(sf) == len(counts) and counts.sum() == len(xy):
+            for f, part in zip(sf.tolist(), np.split(xy, np.cumsum(counts)[:-1]) if len(counts) else [], strict=True):
+                self.view_points[int(f)] = part.copy()
         self.frames, self.updates, self.last_frame_index = (int(x) for x in np.asarray(state["counters"]))
         self.graph = SceneGraph.from_snapshot(snapshot)
         self.hierarchy.restore(snapshot.places, snapshot.rooms)
         self.mesh = None
+
+
+def _seen_xy(fr) -> Annotated[np.ndarray, "(N, 2) float32 world xy"]:
+    """World xy of every ``VIEW_SAMPLE_STRIDE``-th pixel of the frame with depth."""
+    depth = fr.depth_m()[::VIEW_SAMPLE_STRIDE, ::VIEW_SAMPLE_STRIDE]
+    pts = backproject(fr.intrinsics, fr.depth_m())[::VIEW_SAMPLE_STRIDE, ::VIEW_SAMPLE_STRIDE].reshape(-1, 3)
+    pts = pts[(depth.reshape(-1) > 0) & np.isfinite(depth.reshape(-1))]
+    T = np.asarray(fr.T_world_cam, np.float64)
+    return (pts @ T[:3, :3].T + T[:3, 3])[:, :2].astype(np.float32)
 
 
 def _segments_tree(state: dict[str, Any]) -> dict[str, Any]:

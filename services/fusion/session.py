@@ -62,6 +62,11 @@ def mesh_over_limits(mesh: MeshChunk, codec: CodecConfig) -> str | None:
                 f"(transport.codec.max_total_array_bytes, max_payload_bytes; ask with_mesh for the active window)")  # fmt: skip
     return None
 
+ROOM_LABELS_TIMEOUT_S = 2.0
+"""Time-out of each ``vl/embed`` request for a room label."""
+ROOM_LABELS_RETRY_S = (2.0, 60.0)
+"""First wait after a failed fetch of the room labels, and the cap it doubles up to."""
+
 END_GRACE_S = 15.0
 """After ``tracks/end``, how long fusion waits for announced messages still on their way."""
 
@@ -106,6 +111,10 @@ class FusionSession(Session):
         """Journal records dropped at resume (torn by a crash mid-write, or damaged)."""
         self._replaying = False
         self._last_ack_at = -1e9
+        self._labels_at = 0.0
+        self._labels_wait = ROOM_LABELS_RETRY_S[0]
+        self.room_label_tries = 0
+        """Fetches of the room labels' embeddings tried (``fetch_room_labels``)."""
         jcfg = cfg.fusion.journal
         self.journal = Journal(store.root / "journal", jcfg, clock=clock) if store is not None and jcfg.enabled else None
         base: str | None = None
@@ -408,8 +417,56 @@ class FusionSession(Session):
 
     # ---------------------------------------------------------------- time, status, close
 
+    # ---------------------------------------------------------------- room labels
+
+    def fetch_room_labels(self, timeout: float = ROOM_LABELS_TIMEOUT_S) -> bool:
+        """Embed ``fusion.graph.room_labels`` through keyframe_vl's ``vl/embed`` (the map's own
+        VL encoder) and hand them to the core, which names rooms from then on. True when the
+        core has them (or there are none to fetch); False, logged, when keyframe_vl did not
+        answer them all: :meth:`tick` tries again, waiting twice as long each time."""
+        labels = list(self.cfg.fusion.graph.room_labels)
+        if not labels or self._has_room_labels() or not hasattr(self.core, "set_room_vocabulary"):
+            return True
+        from shared.messages.rpc import EmbedReply, EmbedRequest
+
+        self.room_label_tries += 1
+        rows = []
+        try:
+            for text in labels:
+                reply = self.bus.request(self.topics.vl_embed, EmbedRequest(text=text), EmbedReply, timeout=timeout)
+                if reply.error is not None or reply.embedding is None:
+                    raise ValueError(f"vl/embed refused {text!r}: {reply.error or 'no embedding'}")
+                rows.append(np.asarray(reply.embedding, np.float32))
+            if len({r.shape for r in rows}) != 1:
+                raise ValueError(f"vl/embed gave the room labels embeddings of {sorted({r.shape[0] for r in rows})} dimensions")
+        except Exception as exc:  # noqa: BLE001 - keyframe_vl may not be up yet: rooms stay unnamed until it is
+            level = logging.INFO if self.room_label_tries == 1 else logging.DEBUG
+            log.log(level, "fusion: room labels not embedded yet (%s); rooms are named once vl/embed answers", exc)
+            return False
+        with self.lock:
+            self.core.set_room_vocabulary(labels, np.stack(rows))
+        log.info("fusion: %d room labels embedded (%d-d); rooms are named from the next update", len(labels), rows[0].shape[0])
+        return True
+
+    def _has_room_labels(self) -> bool:
+        # (a core without rooms, as some tests give, has none to name)
+        return getattr(self.core, "room_vocabulary", None) is not None
+
+    def _maybe_fetch_room_labels(self, now: float) -> None:
+        if self._has_room_labels() or not self.cfg.fusion.graph.room_labels or now < self._labels_at:
+            return
+        if not self.fetch_room_labels():
+            self._labels_at = now + self._labels_wait
+            self._labels_wait = min(2 * self._labels_wait, ROOM_LABELS_RETRY_S[1])
+
     def tick(self, now: float) -> None:
-        """The end of the sequence once its grace is over; a snapshot when one is due."""
+        """The end of the sequence once its grace is over; a snapshot when one is due; the
+        room labels' embeddings until they are fetched (outside the lock: the round trip must
+        not hold frames up)."""
+        try:
+            self._maybe_fetch_room_labels(now)
+        except Exception:  # noqa: BLE001 - the next tick tries again
+            log.exception("fusion: fetching the room labels failed")
         with self.lock:
             try:
                 self._apply_ready(self.in_order.expire(now))
@@ -433,6 +490,7 @@ class FusionSession(Session):
         book.figure("reorder", self.in_order.as_dict())
         book.figure("graph_seq", self.core.graph.graph_seq)
         book.figure("finished", self.finished.is_set())
+        book.figure("room_labels", self._has_room_labels())
         if self.journal is not None:
             book.figure("journal", {"records": self.journal.appended, "bytes": self.journal.bytes, "torn_at_resume": self.journal_torn})
 

@@ -50,8 +50,28 @@ class KeyframeVLCore:
         return image, masks, msg
 
     def features(self, image: KeyframeImage, masks: Masks) -> MaskFeatures:
+        """The masks' CLIP features and, from an encoder that makes one, the keyframe's view."""
         feats = self.encoder.encode_crops(image, masks) if len(masks) else np.zeros((0, self.encoder.dim), np.float32)
-        return MaskFeatures(frame_index=image.frame_index, features=np.asarray(feats, np.float32), model=self.encoder.name)
+        return MaskFeatures(
+            frame_index=image.frame_index, features=np.asarray(feats, np.float32), model=self.encoder.name,
+            view=self.view(image),
+        )  # fmt: skip
+
+    def view(self, image: KeyframeImage) -> Annotated[np.ndarray, "(D,) float32"] | None:
+        """The encoder's whole-keyframe embedding (room naming); None from an encoder without
+        ``encode_view`` or when it fails: the crops' features go out all the same, and fusion
+        names rooms from their segments alone."""
+        encode_view = getattr(self.encoder, "encode_view", None)
+        if encode_view is None:
+            return None
+        try:
+            view = np.asarray(encode_view(image), np.float32)
+            if view.shape != (self.encoder.dim,) or not np.isfinite(view).all():
+                raise ValueError(f"expected a finite ({self.encoder.dim},) vector, got shape {view.shape}")
+        except Exception as exc:  # noqa: BLE001 - a view is an extra; the crops' features must not be lost
+            log.warning("keyframe %d: no view from %s (%s: %s)", image.frame_index, self.encoder.name, type(exc).__name__, exc)
+            return None
+        return view
 
     def embed_text(self, text: str) -> Annotated[np.ndarray, "(D,) float32"]:
         return self.embedder.embed_text(text)

@@ -3,6 +3,8 @@
     with QueryClient(TransportConfig(connect=["tcp/base:7447"])) as client:
         for hit in client.query("red armchair", top_k=3):
             print(hit.segment, hit.score, hit.centroid)
+        kitchen = client.rooms("kitchen", top_k=1)[0].room
+        sink = client.query("sink", room_text="kitchen")  # or: room=kitchen
 
 Any number of clients may query one service at once; each call is one Zenoh request, with
 a ``deadline_s`` a little under the client's time-out, so a service too busy to answer in
@@ -19,7 +21,7 @@ import numpy as np
 
 from shared.config.transport import TransportConfig
 from shared.messages.graph import GraphSnapshot, SnapshotRequest
-from shared.messages.rpc import QueryHit, QueryReply, QueryRequest
+from shared.messages.rpc import QueryHit, QueryReply, QueryRequest, RoomHit
 from shared.topics import Topics
 from shared.transport import TransportError, open_session, request
 
@@ -75,16 +77,33 @@ class QueryClient:
         center: Annotated[np.ndarray, "(3,) float world metres"] | None = None,
         radius: float | None = None,
         gallery: Literal["max", "mean"] | None = None,
+        room_text: str | None = None,
     ) -> list[QueryHit]:
-        """Ranked segments for a text or an image; raises QueryRefused or TransportError."""
+        """Ranked segments for a text or an image; ``room_text`` keeps only the segments of
+        the room that best matches it (the chosen room is in :meth:`ask`'s ``reply.rooms``).
+        Raises QueryRefused or TransportError."""
         req = QueryRequest(
-            text=text, image=image, top_k=top_k, room=room, radius=radius, gallery=gallery,
+            text=text, image=image, top_k=top_k, room=room, room_text=room_text, radius=radius, gallery=gallery,
             center=None if center is None else np.asarray(center, np.float64),
         )  # fmt: skip
         reply = self.ask(req)
         if reply.error is not None:
             raise QueryRefused(f"query refused: {reply.error}")
         return reply.hits
+
+    def rooms(
+        self,
+        text: str | None = None,
+        *,
+        image: Annotated[np.ndarray, "(H, W, 3) uint8"] | None = None,
+        top_k: int | None = None,
+    ) -> list[RoomHit]:
+        """The graph's rooms ranked by their feature against a text ("kitchen") or an image,
+        best first; empty while no room has a feature. Raises QueryRefused or TransportError."""
+        reply = self.ask(QueryRequest(text=text, image=image, top_k=top_k, target="rooms"))
+        if reply.error is not None:
+            raise QueryRefused(f"query refused: {reply.error}")
+        return reply.rooms
 
     def ask(self, req: QueryRequest) -> QueryReply:
         """The raw reply to one request, error replies included. A request without

@@ -1,6 +1,6 @@
 """``trackgraph query MAP_DIR "TEXT"``: the query core on a saved map, no Zenoh.
 
-The map's newest snapshot gives the segments; queries are embedded with the encoder of the
+The map's newest snapshot gives the segments and the rooms (with their features); queries are embedded with the encoder of the
 map's own resolved config (``MAP_DIR/config.yaml``, written by ``trackgraph map`` and the
 fusion service), or of ``--config``, so the query lands in the space the galleries are in.
 """
@@ -27,7 +27,7 @@ def load_index(map_dir: Path, min_view_share: float = 0.0) -> QueryIndex:
         snap = store.load().snapshot
     except StoreError as exc:
         raise QueryError(f"{map_dir}: {exc}") from None
-    return QueryIndex.build(snap.graph_seq, snap.segments, (r.id for r in snap.rooms), min_view_share=min_view_share)
+    return QueryIndex.build(snap.graph_seq, snap.segments, snap.rooms, min_view_share=min_view_share)
 
 
 def map_config(map_dir: Path, override: Path | None = None) -> TrackGraphConfig:
@@ -53,7 +53,7 @@ class OfflineQueries:
             self.cfg.keyframe_vl.vl, device=resolve_device(self.cfg.query.device, "query.device"), fp16=self.cfg.keyframe_vl.fp16
         )
         self.embedder = Embedder(encoder, self.cfg.keyframe_vl.embed_cache_size)
-        self.engine = QueryEngine(self.cfg.query, self._embed)
+        self.engine = QueryEngine(self.cfg.query, self._embed, self.cfg.fusion.graph.room_labels)
 
     def _embed(self, req: EmbedRequest) -> np.ndarray:
         reply = self.embedder.embed(req)

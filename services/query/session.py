@@ -24,7 +24,8 @@ Readiness and load (docs/architecture.md, "Query (paper III-F, eq. 10)"):
   for a worker until its budget runs out is answered "deadline exceeded: ..." then, without
   being worked on; the ``vl/embed`` round trip and the wait for a resync are cut to what is
   left of it.
-- Text embeddings from ``vl/embed`` are kept in a bounded LRU (``query.embed_cache_size``).
+- Text embeddings from ``vl/embed`` are kept in a bounded LRU (``query.embed_cache_size``);
+  a request's ``room_text`` is embedded through the same path (deadline and cache) as its text.
 """
 
 from __future__ import annotations
@@ -87,7 +88,7 @@ class QuerySession:
                 cfg.keyframe_vl.vl, device=resolve_device(cfg.query.device, "query.device"), fp16=cfg.keyframe_vl.fp16
             )
             self._embedder = Embedder(encoder, cfg.keyframe_vl.embed_cache_size)
-        self.engine = QueryEngine(cfg.query, self._embed)
+        self.engine = QueryEngine(cfg.query, self._embed, cfg.fusion.graph.room_labels)
         self._text_cache = TextCache(0 if self._embedder is not None else cfg.query.embed_cache_size)
         """Remote embeddings only: the local Embedder keeps its own cache."""
         self.index = QueryIndex.empty()
@@ -174,7 +175,7 @@ class QuerySession:
     def _rebuild(self, replica: GraphReplica, _mesh_changed: bool) -> None:
         try:
             self.index = QueryIndex.build(
-                replica.graph_seq, replica.segments.values(), replica.rooms,
+                replica.graph_seq, replica.segments.values(), replica.rooms.values(),
                 min_view_share=self.cfg.query.min_view_share, previous=self.index,
             )  # fmt: skip
         except QueryError as exc:

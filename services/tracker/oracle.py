@@ -6,10 +6,15 @@ new one when it returns, which is what long-term re-identification must merge.
 
 The identities come from an :class:`~shared.datasets.ground_truth.InstanceSource` (by default
 the sequence folder of ``tracker.ground_truth``), read by frame index: a :class:`Frame`
-carries no ground truth."""
+carries no ground truth.
+
+With an encoder, each keyframe's crops are embedded here (no keyframe_vl), and so is its
+view (``encode_view``, when the encoder has one): the TrackFeatures taken for that frame
+carries it, even when no track changed."""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Annotated
 
@@ -19,6 +24,8 @@ from shared.datasets.ground_truth import GroundTruthError, InstanceSource, Seque
 from shared.messages.frames import Frame, TrackedFrame, TrackObservation
 from shared.messages.keyframes import TrackFeature, TrackFeatures
 from shared.perception import KeyframeImage, Masks, VLEncoder
+
+log = logging.getLogger(__name__)
 
 DINO_DIM = 64
 
@@ -57,6 +64,8 @@ class GroundTruthTracker:
         self.clip: dict[int, tuple[np.ndarray, int]] = {}
         self.changed: set[int] = set()
         self._frame: Frame | None = None
+        self._view: tuple[int, np.ndarray] | None = None
+        """The last keyframe's index and view, until the TrackFeatures of that frame takes it."""
 
     def begin_frame(self, frame: Frame) -> None:
         try:
@@ -83,11 +92,25 @@ class GroundTruthTracker:
             lut[obj] = self.track_of[obj]
         self._labels = np.where(instances >= 0, lut[np.maximum(instances, 0)], -1).astype(np.int32)
         if self.encoder is not None and self.count % self.keyframe_interval == 0:
-            self._embed(frame, instances, objects)
+            image = KeyframeImage(frame_index=frame.frame_index, rgb=frame.rgb, depth_m=frame.depth_m(), intrinsics=frame.intrinsics)
+            self._embed(image, instances, objects)
+            self._take_view(image)
         self.count += 1
         return None
 
-    def _embed(self, frame: Frame, instances: np.ndarray, ids: list[int]) -> None:
+    def _take_view(self, image: KeyframeImage) -> None:
+        """Keep the keyframe's view for its TrackFeatures; an encoder without ``encode_view``,
+        or one that fails, leaves none (the crops' features still go out)."""
+        encode_view = getattr(self.encoder, "encode_view", None)
+        self._view = None
+        if encode_view is None:
+            return
+        try:
+            self._view = (image.frame_index, np.asarray(encode_view(image), np.float32))
+        except Exception as exc:  # noqa: BLE001 - a view is an extra; tracking goes on without it
+            log.warning("keyframe %d: no view from %s (%s: %s)", image.frame_index, self.encoder.name, type(exc).__name__, exc)
+
+    def _embed(self, image: KeyframeImage, instances: np.ndarray, ids: list[int]) -> None:
         masks = instances[None] == np.asarray(ids)[:, None, None]
         keep = masks.reshape(len(ids), -1).sum(1) >= 50
         if not keep.any():
@@ -95,7 +118,6 @@ class GroundTruthTracker:
         ids = [i for i, k in zip(ids, keep, strict=True) if k]
         masks = masks[keep]
         boxes = np.stack([_box(m) for m in masks]).astype(np.float32)
-        image = KeyframeImage(frame_index=frame.frame_index, rgb=frame.rgb, depth_m=frame.depth_m(), intrinsics=frame.intrinsics)
         feats = self.encoder.encode_crops(image, Masks(masks, boxes, np.ones(len(ids), np.float32)))
         for obj, f in zip(ids, feats, strict=True):
             tid = self.track_of[obj]
@@ -111,14 +133,22 @@ class GroundTruthTracker:
         return TrackedFrame(frame=fr, track_ids=labels, tracks=obs, keyframe=True)
 
     def take_track_features(self, frame_index: int) -> TrackFeatures | None:
-        if not self.changed:
+        """Changed tracks since the last call, with the view of keyframe ``frame_index`` if it
+        has one; None if neither."""
+        view = None
+        if self._view is not None and self._view[0] <= frame_index:
+            # A view of an earlier frame was never taken (that frame failed): it is dropped,
+            # as fusion would place it at the wrong keyframe.
+            kept, self._view = self._view, None
+            view = kept[1] if kept[0] == frame_index else None
+        if not self.changed and view is None:
             return None
         out = []
         for tid in sorted(self.changed):
             mean, n = self.clip.get(tid, (None, 0))
             out.append(TrackFeature(track_id=tid, dino=identity_feature(self.object_of[tid]), clip=mean, clip_count=n))
         self.changed.clear()
-        return TrackFeatures(frame_index=frame_index, tracks=out)
+        return TrackFeatures(frame_index=frame_index, tracks=out, view=view)
 
 
 def _box(mask: np.ndarray) -> np.ndarray:

@@ -20,6 +20,9 @@ What goes to fusion is kept until fusion acknowledges it (:mod:`services.tracker
 sent again to a restarted fusion, the end of the sequence after it; feature messages carry a
 ``serial`` so fusion applies each once, and both kinds an ``order`` (numbered together, in
 this tracker's ``stream``) so fusion applies them in the order they went out.
+
+A keyframe's view (``MaskFeatures.view``, its whole-image embedding) goes on to fusion in
+the TrackFeatures sent for that keyframe's features, one without tracks if none changed.
 """
 
 from __future__ import annotations
@@ -275,6 +278,7 @@ class TrackerSession(Session):
     def _apply_features(self, msg: MaskFeatures) -> None:
         k = msg.frame_index
         self.awaiting_features.pop(k, None)
+        feats: TrackFeatures | None = None
         if msg.error is not None:
             self.keyframes.failed += 1
             log.warning("keyframe %d: no CLIP features (%s)", k, msg.error)
@@ -283,8 +287,15 @@ class TrackerSession(Session):
             self.keyframes.features(k, self.clock())
             # At once, not with the next frame: after the last keyframe there is none.
             feats = self.core.take_track_features(k)
-            if feats is not None:
-                self._send_features(feats)
+        if msg.view is not None:
+            # The keyframe's view goes to fusion with frame k's message even when no track
+            # changed (fusion places it by frame_index), on the same numbered, resent path.
+            if feats is None:
+                feats = TrackFeatures(frame_index=k, tracks=[], view=msg.view)
+            else:
+                feats = feats.model_copy(update={"view": msg.view})
+        if feats is not None:
+            self._send_features(feats)
 
     def _expire(self, now: float) -> None:
         for k, t in list(self.pending.items()):

@@ -124,6 +124,19 @@ class GraphConfig(StrictModel):
     to about twice this wide (1 m doors at 0.5)."""
     min_room_area_m2: float = Field(2.0, ge=0)
     """Free-space components smaller than this are not rooms."""
+    room_labels: list[str] = Field(
+        default_factory=lambda: [
+            "living room", "bedroom", "kitchen", "bathroom", "dining room", "office", "hall", "corridor",
+            "laundry room", "garage",
+        ]
+    )  # fmt: skip
+    """The room vocabulary (not in the paper): a room's name is the label whose text embedding
+    (keyframe_vl's ``vl/embed``, the map's VL encoder) is nearest its feature. Empty: rooms
+    keep features but get no names."""
+    room_view_weight: float = Field(0.5, ge=0, le=1)
+    """How a room's feature pools its two sources (not in the paper): this weight on the mean
+    of the keyframe views taken from inside it, the rest on the mean CLIP feature of its
+    segments. Either alone where the other is missing."""
 
 
 class JournalConfig(StrictModel):

@@ -26,6 +26,10 @@ areas and IoUs are counted in cells.
   match; ``mean_iou`` averages the best IoUs over ground-truth rooms (0 for none).
 - ``type_accuracy`` (when the grid carries room names): the share of matched ground-truth
   rooms whose predicted room's name is the ground-truth type.
+- ``room_type_top1`` (when a room ranker is given: the query service's "which room is the
+  X", ``target: rooms``): for each ground-truth type of the scene, its text is asked and the
+  top room is a hit when it is matched (IoU >= the threshold) to a ground-truth room of that
+  type. ``room_queries`` lists each with its answer.
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
@@ -236,7 +241,13 @@ def _norm(label: str) -> str:
 # ---------------------------------------------------------------- the metric
 
 
-def evaluate_rooms(grid: RoomGrid, gt_rooms: list[GTRoom], *, iou: float = MATCH_IOU) -> dict[str, Any]:
+RoomRanker = Callable[[str], list[int]]
+"""A room-type text -> the map's room ids, best first (the query service's room ranking)."""
+
+
+def evaluate_rooms(
+    grid: RoomGrid, gt_rooms: list[GTRoom], *, iou: float = MATCH_IOU, rank_rooms: RoomRanker | None = None
+) -> dict[str, Any]:
     """Room scores of a loaded grid against loaded ground truth (see the module docstring)."""
     if not 0 < iou <= 1:
         raise ValueError(f"iou threshold must be in (0, 1], got {iou}")
@@ -276,6 +287,10 @@ def evaluate_rooms(grid: RoomGrid, gt_rooms: list[GTRoom], *, iou: float = MATCH
     if named and pairs:
         hits = sum(_norm(grid.name_of(int(grid.room_ids[p]))) == _norm(gt_rooms[g].type) for p, g in pairs)
         type_accuracy = hits / len(pairs)
+    room_queries, room_type_top1 = None, None
+    if rank_rooms is not None:
+        room_queries = _room_type_queries(grid, gt_rooms, pairs, rank_rooms)
+        room_type_top1 = _ratio(sum(q["hit"] for q in room_queries), len(room_queries))
     return {
         "iou_threshold": iou,
         "precision": precision,
@@ -291,9 +306,27 @@ def evaluate_rooms(grid: RoomGrid, gt_rooms: list[GTRoom], *, iou: float = MATCH
         "mean_iou": float(np.mean(best_ious)) if best_ious else None,
         "type_accuracy": type_accuracy,
         "named_rooms": named,
+        "room_type_top1": room_type_top1,
+        "room_queries": room_queries,
         "resolution": grid.resolution,
         "per_room": per_room,
     }
+
+
+def _room_type_queries(grid: RoomGrid, gt_rooms: list[GTRoom], pairs: list[tuple[int, int]], rank_rooms: RoomRanker) -> list[dict[str, Any]]:
+    """Each ground-truth type asked once; the top room hits when matched to a room of that type."""
+    gt_of = {int(grid.room_ids[p]): g for p, g in pairs}
+    rows = []
+    for text in sorted({r.type for r in gt_rooms}):
+        ranked = list(rank_rooms(text))
+        top = int(ranked[0]) if ranked else None
+        g = gt_of.get(top) if top is not None else None
+        rows.append({
+            "query": text, "top_room": top, "top_name": None if top is None else grid.name_of(top),
+            "gt_room": None if g is None else gt_rooms[g].name, "gt_type": None if g is None else gt_rooms[g].type,
+            "hit": g is not None and _norm(gt_rooms[g].type) == _norm(text),
+        })  # fmt: skip
+    return rows
 
 
 def load_pred_grid(pred_dir: str | Path) -> RoomGrid:
@@ -310,13 +343,16 @@ def load_pred_grid(pred_dir: str | Path) -> RoomGrid:
         raise EvalInputError(exc.path, exc.reason) from None
 
 
-def eval_rooms(pred_dir: str | Path, gt_dir: str | Path, *, iou: float = MATCH_IOU) -> dict[str, Any]:
+def eval_rooms(
+    pred_dir: str | Path, gt_dir: str | Path, *, iou: float = MATCH_IOU, rank_rooms: RoomRanker | None = None
+) -> dict[str, Any]:
     """Room precision, recall and F1 at ``iou``, over/under-segmentation, per-room IoU and
-    ``mean_iou`` of the map in ``pred_dir`` (its ``rooms.npz``) against ``gt_dir``."""
+    ``mean_iou`` of the map in ``pred_dir`` (its ``rooms.npz``) against ``gt_dir``; with
+    ``rank_rooms``, the room-type top-1 of "which room is X"."""
     t0 = time.perf_counter()
     gt_rooms = load_gt_rooms(gt_dir)
     grid = load_pred_grid(pred_dir)
-    out = evaluate_rooms(grid, gt_rooms, iou=iou)
+    out = evaluate_rooms(grid, gt_rooms, iou=iou, rank_rooms=rank_rooms)
     out["seconds"] = round(time.perf_counter() - t0, 3)
     log.info(
         "rooms: %d predicted, %d ground truth, P %s R %s F1 %s at IoU %.2f, mean IoU %s",
@@ -328,6 +364,7 @@ def eval_rooms(pred_dir: str | Path, gt_dir: str | Path, *, iou: float = MATCH_I
 
 __all__ = [
     "GTRoom",
+    "RoomRanker",
     "evaluate_rooms",
     "eval_rooms",
     "load_gt_rooms",

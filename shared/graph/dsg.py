@@ -11,7 +11,7 @@ attribute types Hydra itself writes. The graph is built with Hydra's layer map
 | segment | ``OBJECTS`` | ``O<id>`` | ``ObjectNodeAttributes``: box, CLIP gallery as ``semantic_feature``, mesh connections, colour |
 | place | ``PLACES`` | ``p<id>`` | ``PlaceNodeAttributes``: ``distance`` = radius, ``is_active``, ``real_place``, colour |
 | place outline | ``MESH_PLACES`` | ``Q<id>`` | ``Place2dNodeAttributes``: ``boundary``, Hydra's ellipse, ``is_active``, colour |
-| room | ``ROOMS`` | ``R<id>`` | ``RoomNodeAttributes``: name, box, ``semantic_label``, colour |
+| room | ``ROOMS`` | ``R<id>`` | ``RoomNodeAttributes``: name, box, ``semantic_label``, colour, feature as a one-row ``semantic_feature`` |
 | building | ``BUILDINGS`` | ``B0`` | ``SemanticNodeAttributes`` at the mean of the room centroids |
 | camera pose | ``AGENTS``, partition ``'a'`` | ``a<row>`` | ``AgentNodeAttributes``: position, ``world_R_body``, timestamp |
 | mesh | the graph's mesh | | positions, segment colours, per-vertex label = segment id |
@@ -340,6 +340,12 @@ def _room(r: RoomNode, snap: GraphSnapshot, place_room: dict[int, int], label: i
     a.semantic_label = label
     a.color = color
     meta: dict[str, Any] = {"area_m2": float(r.area_m2)}
+    if r.feature is not None:
+        # One row, as a segment's gallery: Hydra-side tools read it as the node's feature.
+        a.semantic_feature = np.asarray(r.feature, np.float32).reshape(1, -1)
+        meta["feature_dtype"] = r.feature.dtype.name
+    if r.name_score is not None:
+        meta["name_score"] = float(r.name_score)
     if r.bbox_min is not None and r.bbox_max is not None:
         a.bounding_box = _box(r.bbox_min, r.bbox_max)
         meta["bbox_min"], meta["bbox_max"] = r.bbox_min.tolist(), r.bbox_max.tolist()
@@ -575,11 +581,16 @@ def _segment(nid: int, a: sd.ObjectNodeAttributes) -> SegmentNode:
 def _room_node(nid: int, a: sd.RoomNodeAttributes) -> RoomNode:
     m = dict(a.metadata.get()).get("trackgraph", {})
     box = {k: np.asarray(m[k], np.float64) for k in ("bbox_min", "bbox_max") if k in m}
+    feature = None
+    if "feature_dtype" in m:
+        feature = np.asarray(a.semantic_feature, np.float32).reshape(-1).astype(m["feature_dtype"])
     return RoomNode(
         id=nid,
         centroid=np.array(a.position, np.float64, copy=True).reshape(3),
         name=a.name,
         area_m2=float(m.get("area_m2", 0.0)),
+        feature=feature,
+        name_score=m.get("name_score"),
         **box,
     )
 

@@ -52,6 +52,8 @@ BUILDING_ID = 0
 
 EdgeKey = tuple[str, int, int]
 Locator = Callable[[Annotated[np.ndarray, "(N, 3) float64"]], Annotated[np.ndarray, "(N,) int64 place id, -1 none"]]
+RoomDescriber = Callable[[dict[int, SegmentNode], dict[int, RoomNode], dict[int, RoomNode]], dict[int, RoomNode]]
+"""(segments, new rooms, previous rooms) -> the new rooms, same ids, attributes filled in."""
 
 _KIND_ORDER = {"segment_place": 0, "place_place": 1, "place_room": 2, "room_building": 3}
 
@@ -139,12 +141,15 @@ class SceneGraph:
         rooms: Sequence[RoomNode] | None = None,
         mesh: MeshChunk | None = None,
         frame_index: int | None = None,
+        describe_rooms: RoomDescriber | None = None,
     ) -> GraphDelta:
         """Apply one update and return the delta to the previous version.
 
         ``places`` / ``rooms`` of None leave those layers as they are; a value replaces the
         layer (nodes missing from it are removed). A segment both changed and removed is
-        removed. Edges pointing at nodes that do not exist are dropped.
+        removed. Edges pointing at nodes that do not exist are dropped. ``describe_rooms``
+        gets the new segments (with their rooms), the new rooms and the previous rooms, and
+        returns the rooms to keep, e.g. with features read off their segments.
         """
         segs = dict(self.segments)
         for s in segments_changed:
@@ -181,6 +186,8 @@ class SceneGraph:
             room = room if room in new_rooms else None
             if s.room != room:
                 segs[sid] = s.model_copy(update={"room": room})
+        if describe_rooms is not None:
+            new_rooms = describe_rooms(segs, new_rooms, self.rooms)
 
         delta = GraphDelta(
             graph_seq=self.graph_seq + 1,

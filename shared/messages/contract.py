@@ -96,7 +96,7 @@ CONTRACT: tuple[KeyContract, ...] = (
     ),
     KeyContract(
         "tracks_features", f"{_R}/tracks/features", "pub/sub", TrackFeatures, None, ("tracker",),
-        (Listener("fusion", "fifo"),), "Track features that changed.",
+        (Listener("fusion", "fifo"),), "Track features that changed, and each keyframe's view embedding.",
     ),
     KeyContract(
         "tracks_end", f"{_R}/tracks/end", "pub/sub", EndOfSequence, None, ("tracker",),
@@ -114,7 +114,9 @@ CONTRACT: tuple[KeyContract, ...] = (
     ),
     KeyContract(
         "vl_embed", f"{_R}/vl/embed", "query/reply", EmbedRequest, EmbedReply, ("keyframe_vl",),
-        (Listener("query", "request", "query.embed: remote"), Listener("clients", "request")),
+        (Listener("query", "request", "query.embed: remote"),
+         Listener("fusion", "request", "the room labels (fusion.graph.room_labels), once, retried until answered"),
+         Listener("clients", "request")),
         "A text or image in the VL encoder's space.", congestion=None,
     ),
     KeyContract(

@@ -94,13 +94,22 @@ class RoomNode(Message):
     centroid: Annotated[Vec3, METRES]
     """Centroid of its places (m, world)."""
     name: str = ""
-    """Optional label."""
+    """Its best label among ``GraphConfig.room_labels`` by ``feature`` (e.g. "bedroom"); ""
+    while it has no feature or fusion has no label embeddings yet."""
     bbox_min: Annotated[Vec3, METRES] | None = None
     """Axis-aligned box corner of its free space, floor to ceiling (m, world); None if unknown."""
     bbox_max: Annotated[Vec3, METRES] | None = None
     """Axis-aligned box corner (m, world); None if unknown."""
     area_m2: float = Field(0.0, ge=0)
     """Area of its free-space footprint (m^2)."""
+    feature: Vector | None = None
+    """(D,) L2-normalised open-vocabulary feature in the VL encoder's space: the keyframe views
+    taken from inside the room and the CLIP galleries of its segments, pooled
+    (``GraphConfig.room_view_weight``); None before either exists. Text such as "kitchen" is
+    ranked against it."""
+    name_score: float | None = None
+    """Cosine between ``feature`` and the embedding of ``name`` (its label in
+    ``GraphConfig.room_labels``); None when the room has no name."""
 
 
 class Edge(Message):

@@ -81,6 +81,10 @@ class MaskFeatures(Message):
     """Encoder name, so features from different models are never mixed."""
     error: str | None = None
     """Set, with N = 0, when the features could not be computed."""
+    view: Vector | None = None
+    """(D,) L2-normalised embedding of the whole keyframe, in the space of ``features``: what
+    the place looks like, for naming the room the camera is in. None from an encoder that
+    does not make one (fusion then names rooms from their segments alone)."""
 
 
 class TrackFeature(Message):
@@ -123,3 +127,6 @@ class TrackFeatures(Message):
     overtakes what on the way (a resend after a fusion restart). None: applied as it comes."""
     stream: int | None = Field(None, ge=0)
     """The tracker's epoch, drawn at its start: a new one tells fusion ``order`` starts again."""
+    view: Vector | None = None
+    """The keyframe ``frame_index``'s whole-image embedding (``MaskFeatures.view``), passed on
+    by the tracker for fusion's room features; None when the keyframe had none."""

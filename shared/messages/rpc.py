@@ -60,6 +60,13 @@ class QueryRequest(Message):
     """Results wanted; the service caps it."""
     room: int | None = None
     """Only segments in this room."""
+    room_text: str | None = None
+    """Only segments in the room that best matches this description (e.g. "kitchen"): the
+    rooms are ranked by their feature (``RoomNode.feature``) against its embedding, and the
+    reply's ``rooms`` says which room was taken. Not with ``room``."""
+    target: Literal["segments", "rooms"] = "segments"
+    """``rooms``: rank the graph's rooms instead of its segments ("which room is the kitchen");
+    the answer is the reply's ``rooms``, best first, and ``hits`` is empty."""
     center: Annotated[Vec3 | None, METRES] = None
     """With radius: only segments whose centroid lies within radius of this point."""
     radius: Annotated[float | None, METRES] = Field(None, gt=0)
@@ -75,10 +82,15 @@ class QueryRequest(Message):
 
     @model_validator(mode="after")
     def _valid(self) -> QueryRequest:
-        """Exactly one of ``text`` (not blank) and ``image`` (with pixels); ``center`` and ``radius`` go together."""
+        """Exactly one of ``text`` (not blank) and ``image`` (with pixels); ``center`` and
+        ``radius`` go together; ``room_text`` is not blank and not given with ``room``."""
         _one_of_text_or_image(self.text, self.image)
         if (self.center is None) != (self.radius is None):
             raise ValueError("center and radius go together")
+        if self.room_text is not None and not self.room_text.strip():
+            raise ValueError("room_text is empty")
+        if self.room_text is not None and self.room is not None:
+            raise ValueError("give at most one of room and room_text")
         return self
 
 class QueryHit(Message):
@@ -99,12 +111,37 @@ class QueryHit(Message):
     best_track: int | None = None
     """Gallery track that gave the score."""
 
+class RoomHit(Message):
+    """One ranked room."""
+
+    room: int
+    """Room id."""
+    score: float
+    """Cosine between the query's embedding and the room's feature."""
+    margin: float | None = None
+    """For a text query: ``score`` minus the room feature's best cosine with any other room
+    label (``fusion.graph.room_labels``), the ranking key: positive where the text describes
+    the room better than every other label does. None for an image query, or without labels
+    (then ``score`` ranks)."""
+    name: str = ""
+    """The room's name (``RoomNode.name``)."""
+    centroid: Annotated[Vec3, METRES]
+    """Centroid of its places (m, world)."""
+    bbox_min: Annotated[Vec3, METRES] | None = None
+    """Box corner (m, world); None if unknown."""
+    bbox_max: Annotated[Vec3, METRES] | None = None
+    """Box corner (m, world); None if unknown."""
+
+
 @register
 class QueryReply(Message):
-    """Ranked segments, or an error."""
+    """Ranked segments (or rooms), or an error."""
 
     hits: list[QueryHit] = Field(default_factory=list)
     """Best first."""
+    rooms: list[RoomHit] = Field(default_factory=list)
+    """Ranked rooms, best first: the answer to a ``target: rooms`` request; for a
+    ``room_text`` filter, the room it chose (and the runners-up)."""
     graph_seq: int = Field(-1, ge=-1)
     """Graph version the answer comes from."""
     error: str | None = None

@@ -452,11 +452,12 @@ def test_limits_follow_the_config() -> None:
     refused(payload, cfg=CodecConfig(max_ndim=2))
     refused(payload, cfg=CodecConfig(max_items=4))
     refused(payload, cfg=CodecConfig(max_string_bytes=4))
-    # max_items bounds every list and map, with the envelope's 6 keys as the largest map here
-    at_limit = enc(TrackFeatures(frame_index=0, tracks=[], retired=list(range(6))))
-    assert decode(at_limit, TrackFeatures, CodecConfig(max_items=6)).body.retired == list(range(6))
-    over = enc(TrackFeatures(frame_index=0, tracks=[], retired=list(range(7))))
-    assert "max_array_len" in str(refused(over, TrackFeatures, CodecConfig(max_items=6)))
+    # max_items bounds every list and map, with TrackFeatures' 7 keys as the largest map here
+    at_limit = enc(TrackFeatures(frame_index=0, tracks=[], retired=list(range(7))))
+    assert decode(at_limit, TrackFeatures, CodecConfig(max_items=7)).body.retired == list(range(7))
+    over = enc(TrackFeatures(frame_index=0, tracks=[], retired=list(range(8))))
+    assert "max_array_len" in str(refused(over, TrackFeatures, CodecConfig(max_items=7)))
+    assert "max_map_len" in str(refused(at_limit, TrackFeatures, CodecConfig(max_items=6)))
     jpeg = enc(make_frame(), COMPRESSED)
     decode(jpeg, Frame, COMPRESSED)
     refused(jpeg, cfg=CodecConfig(max_image_pixels=6 * 5 - 1))

@@ -177,6 +177,11 @@ class ClipOnnxEncoder:
         """A whole image (an image query)."""
         return self._forward_images([check_rgb(rgb)])[0]
 
+    def encode_view(self, image: KeyframeImage) -> Annotated[np.ndarray, "(D,) float32"]:
+        """The whole keyframe through the image tower, as an image query: CLIP's own embedding
+        of the place (a photo of a bedroom lies near "bedroom"), for naming rooms."""
+        return self.encode_image(image.rgb)
+
 
 def export_clip_onnx(arch: str, weights: str | Path, out_dir: str | Path, opset: int | None = None) -> Path:
     """Export the image and text towers of ``arch`` (weights loaded from the local

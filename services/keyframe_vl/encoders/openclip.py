@@ -302,3 +302,8 @@ class OpenClipEncoder:
     def encode_image(self, rgb: Annotated[np.ndarray, "(H, W, 3) uint8"]) -> Annotated[np.ndarray, "(D,) float32"]:
         """A whole image (an image query), through OpenCLIP's own transform."""
         return self._forward_images([check_rgb(rgb)])[0]
+
+    def encode_view(self, image: KeyframeImage) -> Annotated[np.ndarray, "(D,) float32"]:
+        """The whole keyframe through the image tower, as an image query: CLIP's own embedding
+        of the place (a photo of a bedroom lies near "bedroom"), for naming rooms."""
+        return self.encode_image(image.rgb)

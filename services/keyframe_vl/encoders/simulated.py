@@ -28,8 +28,22 @@ for pixel). No message carries them. A folder source builds its image index on a
 thread as the encoder is made (about 3 ms a frame, once), so the first image query does not
 wait for it.
 
+A keyframe's **view** (:meth:`SimulatedVLEncoder.encode_view`, the whole frame, for naming the
+room the camera is in) stands in for CLIP's whole-image embedding of a room, which lies near
+the room's type (a photo of a bedroom is near "bedroom"). The synthetic world knows where
+each object is: every sample of ``gt_categories.json`` has a ``room`` key (a room name), and
+the rooms' types come from ``rooms.json`` beside it, or for older sequences ``scene.json``'s
+room kinds (:func:`shared.eval.rooms.load_gt_rooms`). Each pixel's object gives its room and
+the room its type label ("dining room", ...); the view is the pixel-share-weighted mix of
+those labels' text embeddings plus noise seeded by ``(2, frame_index)``, L2-normalised.
+Pixels of no object, or of an object with no room, weigh zero; a frame with no such pixel
+gets a random direction, as a crop with no labelled pixel does. A sequence with no room
+information (no room file, or no ``room`` keys) still gets views: the mix of the frame's
+objects over all its pixels, as an image query's, said once in the log. A room file that is
+there but malformed is an error naming the file and the field, at construction.
+
 Text goes through the same offline MiniLM encoder (:class:`shared.text.minilm.MiniLMTextEncoder`),
-so queries and crops share one 384-d space.
+so queries, crops and views share one 384-d space.
 """
 
 from __future__ import annotations
@@ -38,7 +52,7 @@ import json
 import logging
 import zlib
 from pathlib import Path
-from typing import Annotated, Protocol
+from typing import Annotated, Any, Protocol
 
 import numpy as np
 
@@ -50,6 +64,8 @@ from shared.perception import KeyframeImage, Masks
 log = logging.getLogger(__name__)
 
 CATEGORIES_FILE = "gt_categories.json"
+ROOM_KEY = "room"
+"""The key of a ``gt_categories.json`` sample naming the room its object stands in."""
 NAME = "simulated:all-MiniLM-L6-v2"
 WARMUP_TEXT = "a warm-up sentence"
 """What :meth:`SimulatedVLEncoder.warm_up` embeds when its text encoder has no warm-up of its own."""
@@ -80,19 +96,57 @@ def find_categories(ground_truth: str | Path | None) -> Path:
     )
 
 
-def load_object_names(path: Path) -> dict[int, str]:
-    """Object id -> the name its embedding is made from (first synonym, else category)."""
-    from shared.eval.gt import parse_categories
-
+def _read_categories(path: Path) -> Any:
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
+        return json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ValueError(f"{path}: not readable ground-truth categories ({exc})") from exc
-    objects = parse_categories(data, path)
+
+
+def load_object_names(path: Path, data: Any = None) -> dict[int, str]:
+    """Object id -> the name its embedding is made from (first synonym, else category).
+    ``data`` is the file's parsed content when the caller has read it already."""
+    from shared.eval.gt import parse_categories
+
+    objects = parse_categories(_read_categories(path) if data is None else data, path)
     names = {oid: name for oid, o in objects.items() if (name := o.name())}
     if not names:
         raise ValueError(f"{path}: no object has a synonym or a category to embed")
     return names
+
+
+def load_object_rooms(path: Path, data: Any = None) -> dict[int, str]:
+    """Object id -> the name of the room it stands in (``dataset.samples[*].room``), for the
+    objects that have one; empty for categories written without rooms."""
+    if data is None:
+        data = _read_categories(path)
+    try:
+        samples = data["dataset"]["samples"]
+    except (TypeError, KeyError):
+        raise ValueError(f'{path}: expected {{"dataset": {{"samples": [...]}}}}') from None
+    rooms: dict[int, str] = {}
+    for i, sample in enumerate(samples if isinstance(samples, list) else []):
+        if not isinstance(sample, dict) or sample.get(ROOM_KEY) is None:
+            continue
+        room, oid = sample[ROOM_KEY], sample.get("object_id")
+        if not isinstance(room, str) or not room:
+            raise ValueError(f"{path}: dataset.samples[{i}].{ROOM_KEY}: expected a room name, got {room!r}")
+        try:
+            rooms[int(oid)] = room
+        except (TypeError, ValueError):
+            raise ValueError(f"{path}: dataset.samples[{i}].object_id: expected an integer, got {oid!r}") from None
+    return rooms
+
+
+def load_room_types(folder: Path) -> dict[str, str] | None:
+    """Room name -> its type label ("dining room"), from ``rooms.json`` (else ``scene.json``)
+    in ``folder`` or ``folder/gt``; None when neither file is there. A file that is there but
+    malformed raises, naming the file and the field."""
+    from shared.eval.rooms import ROOMS_GT_FILE, SCENE_FILE, load_gt_rooms
+
+    if not any((d / f).is_file() for d in (folder, folder / "gt") for f in (ROOMS_GT_FILE, SCENE_FILE)):
+        return None
+    return {r.name: r.type for r in load_gt_rooms(folder)}
 
 
 class SimulatedVLEncoder:
@@ -112,7 +166,10 @@ class SimulatedVLEncoder:
         if noise_std < 0:
             raise ValueError(f"noise_std must be >= 0 (got {noise_std})")
         self.categories = find_categories(ground_truth)
-        names = load_object_names(self.categories)
+        data = _read_categories(self.categories)
+        names = load_object_names(self.categories, data)
+        object_rooms = load_object_rooms(self.categories, data)
+        room_types = load_room_types(self.categories.parent) if object_rooms else None
         if source is None:
             folder = SequenceGroundTruth(ground_truth, field="keyframe_vl.vl.ground_truth", user="simulated VL encoder")
             folder.prepare_images(background=True)
@@ -127,10 +184,40 @@ class SimulatedVLEncoder:
         self.noise_std = float(noise_std)
         self._ids = np.asarray(sorted(names), np.int64)
         self._emb = np.asarray(self.text.encode([names[int(i)] for i in self._ids]), np.float32)
+        self._room_objects, self._room_type, self.room_types, self._type_emb = self._rooms(object_rooms, room_types)
+        self._told_no_rooms = False
         log.info(
-            "simulated VL encoder: %d labelled objects from %s, noise std %.3g",
+            "simulated VL encoder: %d labelled objects from %s, noise std %.3g, %s",
             len(self._ids), self.categories, self.noise_std,
+            f"views from {len(self.room_types)} room types" if self.room_types else "views without room types",
         )  # fmt: skip
+
+    def _rooms(
+        self, object_rooms: dict[int, str], room_types: dict[str, str] | None
+    ) -> tuple[
+        Annotated[np.ndarray, "(R,) int64 sorted object ids with a typed room"],
+        Annotated[np.ndarray, "(R,) int64 index into the type labels"],
+        list[str],
+        Annotated[np.ndarray, "(T, D) float32 unit rows"] | None,
+    ]:
+        """The lookup from object to its room's type label, and the labels' embeddings; empty
+        (and None) when the sequence tells no object's room type."""
+        none = (np.zeros(0, np.int64), np.zeros(0, np.int64), [], None)
+        if not object_rooms or not room_types:
+            return none
+        unknown = sorted({r for r in object_rooms.values() if r not in room_types})
+        if unknown:
+            log.warning(
+                "%s: objects stand in rooms the room ground truth does not list (%s); their pixels weigh nothing in views",
+                self.categories, ", ".join(unknown),
+            )  # fmt: skip
+        typed = {oid: room_types[r] for oid, r in object_rooms.items() if r in room_types}
+        if not typed:
+            return none
+        labels = sorted(set(typed.values()))
+        objects = np.asarray(sorted(typed), np.int64)
+        index = np.asarray([labels.index(typed[int(o)]) for o in objects], np.int64)
+        return objects, index, labels, unit_rows(self.text.encode(labels))
 
     def _mix(self, ids: Annotated[np.ndarray, "(P,) int"]) -> Annotated[np.ndarray, "(D,) float32"]:
         """Pixel-share-weighted sum of the embeddings of the objects among ``ids``."""
@@ -149,9 +236,20 @@ class SimulatedVLEncoder:
             return unit_rows(noise[None])[0]
         return unit_rows((mix + np.float32(self.noise_std) * noise)[None])[0]
 
-    def encode_crops(self, image: KeyframeImage, masks: Masks) -> Annotated[np.ndarray, "(N, 384) float32"]:
-        """One feature per mask: its pixels' ground-truth mix plus noise seeded by
-        ``(frame_index, mask index)``."""
+    def _room_mix(self, ids: Annotated[np.ndarray, "(P,) int"]) -> Annotated[np.ndarray, "(D,) float32"]:
+        """Pixel-share-weighted sum of the embeddings of the room types of the objects among
+        ``ids`` (pixels of no object, or of an object without a typed room, weigh zero)."""
+        assert self._type_emb is not None
+        if ids.size == 0:
+            return np.zeros(self.dim, np.float32)
+        values, counts = np.unique(ids, return_counts=True)
+        pos = np.clip(np.searchsorted(self._room_objects, values), 0, len(self._room_objects) - 1)
+        known = self._room_objects[pos] == values
+        per_type = np.bincount(self._room_type[pos[known]], weights=counts[known], minlength=len(self.room_types))
+        return (per_type / ids.size).astype(np.float32) @ self._type_emb
+
+    def _keyframe_instances(self, image: KeyframeImage) -> Annotated[np.ndarray, "(H, W) int object ids, -1 none"]:
+        """The ground-truth ids of keyframe ``image.frame_index``, checked against its size."""
         rgb = check_rgb(image.rgb)
         try:
             inst = np.asarray(self.source.frame_instances(image.frame_index))
@@ -162,6 +260,13 @@ class SimulatedVLEncoder:
                 f"keyframe {image.frame_index}: the ground-truth instances are {inst.shape[1]}x{inst.shape[0]} but the image is "
                 f"{rgb.shape[1]}x{rgb.shape[0]}: is keyframe_vl.vl.ground_truth the sequence being replayed?"
             )
+        return inst
+
+    def encode_crops(self, image: KeyframeImage, masks: Masks) -> Annotated[np.ndarray, "(N, 384) float32"]:
+        """One feature per mask: its pixels' ground-truth mix plus noise seeded by
+        ``(frame_index, mask index)``."""
+        inst = self._keyframe_instances(image)
+        rgb = image.rgb
         if masks.masks.shape[1:] != rgb.shape[:2]:
             raise ValueError(f"masks of shape {masks.masks.shape} do not match the image {rgb.shape[:2]}")
         out = np.zeros((len(masks), self.dim), np.float32)
@@ -174,6 +279,24 @@ class SimulatedVLEncoder:
                 ids = inst[y0:y1, x0:x1][mask[y0:y1, x0:x1]]
             out[j] = self._finish(self._mix(ids), (0, int(image.frame_index), j))
         return out
+
+    def encode_view(self, image: KeyframeImage) -> Annotated[np.ndarray, "(384,) float32"]:
+        """The whole keyframe: the mix of the room types under its pixels (see the module
+        docstring) plus noise seeded by ``(2, frame_index)``; without room ground truth, the
+        mix of its objects."""
+        inst = self._keyframe_instances(image).ravel()
+        if self._type_emb is not None:
+            mix = self._room_mix(inst)
+        else:
+            if not self._told_no_rooms:
+                self._told_no_rooms = True
+                log.info(
+                    "%s: no object has a room of known type (no rooms.json or scene.json rooms, or no %r keys): "
+                    "keyframe views carry no room type, only the mix of the frame's objects",
+                    self.categories, ROOM_KEY,
+                )  # fmt: skip
+            mix = self._mix(inst)
+        return self._finish(mix, (2, int(image.frame_index)))
 
     def warm_up(self) -> None:
         """Load the text model now: the labels' embeddings usually come from the disk cache,

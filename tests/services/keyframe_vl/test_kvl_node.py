@@ -115,6 +115,8 @@ def test_request_gets_masks_then_features_and_bad_input_is_survived(system):
         assert feats.frame_index == 0 and feats.features.shape == (len(masks.masks), 384)
         assert t_mask <= t_feat
         np.testing.assert_allclose(np.linalg.norm(feats.features, axis=1), 1.0, atol=1e-4)
+        assert feats.view is not None and feats.view.shape == (384,)  # the keyframe's view, over the wire
+        assert abs(float(np.linalg.norm(feats.view)) - 1.0) < 1e-3
 
         # A malformed payload is counted and the node keeps serving.
         raw.put(b"\x93not a keyframe")

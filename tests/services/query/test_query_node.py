@@ -1,10 +1,12 @@
 """The query service over loopback Zenoh: late join and gaps resynchronise from
 ``graph/snapshot``, queries are embedded through ``vl/embed``, many clients at once, and a
-client that vanishes mid-query harms nobody. Fusion and keyframe_vl are stand-ins that speak
+client that vanishes mid-query harms nobody; rooms are asked for by name from the client and
+``trackgraph query --live``. Fusion and keyframe_vl are stand-ins that speak
 the real messages."""
 
 from __future__ import annotations
 
+import json
 import socket
 import threading
 import time
@@ -13,6 +15,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 
+from services.cli import main
 from services.keyframe_vl.embedder import WARMUP_TEXT
 from services.query.client import QueryClient, QueryRefused, deadline_for
 from services.query.node import QueryNode
@@ -20,7 +23,7 @@ from services.router import run_router
 from shared.codec import encode
 from shared.config import TrackGraphConfig
 from shared.graph.scene import GraphReplica
-from shared.messages.graph import GraphDelta, GraphSnapshot, SegmentNode, SnapshotRequest
+from shared.messages.graph import GraphDelta, GraphSnapshot, RoomNode, SegmentNode, SnapshotRequest
 from shared.messages.rpc import EmbedReply, EmbedRequest, QueryRequest
 from shared.topics import Topics
 from shared.transport import (
@@ -288,5 +291,34 @@ def test_the_client_sends_a_deadline_from_its_timeout(system):
             client.query("chair")
             client.ask(QueryRequest(text="chair", deadline_s=1.25))
         assert seen == [pytest.approx(deadline_for(3.0)), 1.25] and deadline_for(3.0) == pytest.approx(2.8)
+    finally:
+        node.close()
+
+
+def test_rooms_by_name_over_zenoh_from_the_client_and_the_command_line(system, capsys):
+    cfg, fusion = system
+
+    def room(i: int, word: str, name: str) -> RoomNode:
+        return RoomNode(id=i, centroid=np.array([4.0 * i, 0.0, 1.2]), name=name, feature=E[WORDS.index(word)])
+
+    # Room 0 "looks like" a table, room 1 a lamp; a lamp stands in each.
+    segs = [seg(1, "lamp").model_copy(update={"room": 0}), seg(2, "lamp").model_copy(update={"room": 1})]
+    d = GraphDelta(graph_seq=1, frame_index=0, segments=segs, rooms=[room(0, "table", "dining room"), room(1, "lamp", "study")])
+    fusion.graph.apply_delta(d)
+    node = QueryNode(cfg)
+    try:
+        assert wait(lambda: node.session.ready and node.sync.synced and node.sync.graph_seq == 1), node.stats()
+        with QueryClient(cfg.transport, robot_id=cfg.robot_id) as client:
+            rooms = client.rooms("a table")
+            assert [r.room for r in rooms] == [0, 1] and rooms[0].name == "dining room" and rooms[0].score == pytest.approx(1.0)
+            assert [h.segment for h in client.query("lamp", room_text="a table")] == [1]
+            assert client.ask(QueryRequest(text="lamp", room_text="a lamp")).rooms[0].room == 1
+        capsys.readouterr()
+        endpoint = cfg.transport.connect[0]
+        assert main(["query", "--live", "a lamp", "--rooms", "--json", "--connect", endpoint]) == 0
+        rows = json.loads(capsys.readouterr().out)
+        assert [r["room"] for r in rows] == [1, 0] and rows[0]["name"] == "study" and rows[0]["bbox"] is None
+        assert main(["query", "--live", "lamp", "--in-room", "a table", "--json", "--connect", endpoint]) == 0
+        assert [r["segment"] for r in json.loads(capsys.readouterr().out)] == [1]
     finally:
         node.close()

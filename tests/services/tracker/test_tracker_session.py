@@ -295,3 +295,91 @@ def test_the_ground_truth_tracker_needs_no_keyframe_answers(clock, make_frame):
     rig.send(rig.masks, masks_for(0))  # a stray answer is harmless
     rig.send(rig.end, EndOfSequence(frames_published=1, frames_dropped=0, last_frame_index=0))
     assert rig.tracked() == [0] and len(rig.got["tracks_end"]) == 1
+
+
+# ---------------------------------------------------------------- keyframe views on to fusion
+
+
+class QuietTracker(FakeTracker):
+    """Its CLIP features change no track (a keyframe whose masks all went to no track)."""
+
+    def apply_features(self, frame_index: int, features) -> None:
+        self.calls.append(("features", frame_index))
+
+
+def view_of(k: int) -> np.ndarray:
+    v = np.random.default_rng(k).standard_normal(8).astype(np.float32)
+    return v / np.linalg.norm(v)
+
+
+def with_view(msg: MaskFeatures, view: np.ndarray) -> MaskFeatures:
+    return msg.model_copy(update={"view": view})
+
+
+def test_a_keyframe_view_rides_with_its_track_features(clock, make_frame):
+    rig = Rig(clock)
+    rig.send(rig.frames, make_frame(0))
+    rig.send(rig.masks, masks_for(0))
+    rig.send(rig.features, with_view(features_for(0), view_of(0)))
+    (feats,) = rig.got["tracks_features"]
+    assert feats.frame_index == 0 and [t.track_id for t in feats.tracks] == [0]
+    np.testing.assert_array_equal(feats.view, view_of(0))
+    # numbered as every message to fusion: after frame 0's TrackedFrame
+    assert (feats.serial, feats.order, feats.stream) == (0, 1, rig.session.stream)
+
+
+def test_a_keyframe_view_goes_out_when_no_track_changed(clock, make_frame):
+    rig = Rig(clock, core=QuietTracker())
+    rig.send(rig.frames, make_frame(0))
+    rig.send(rig.masks, masks_for(0))
+    rig.send(rig.frames, make_frame(1))  # takes the masks' changes
+    assert len(rig.got["tracks_features"]) == 1
+    rig.send(rig.features, features_for(0))  # nothing changed, no view: nothing to send
+    assert len(rig.got["tracks_features"]) == 1
+    rig.send(rig.frames, make_frame(2))
+    rig.send(rig.frames, make_frame(3))
+    rig.send(rig.masks, masks_for(3))
+    rig.send(rig.frames, make_frame(4))
+    rig.send(rig.features, with_view(features_for(3), view_of(3)))
+    feats = rig.got["tracks_features"][-1]
+    assert len(rig.got["tracks_features"]) == 3
+    assert feats.frame_index == 3 and feats.tracks == [] and feats.retired == []
+    np.testing.assert_array_equal(feats.view, view_of(3))
+    assert feats.serial == 2 and feats.order == 7  # after frames 0-4 and two feature messages (orders 0-6)
+
+
+def test_a_view_is_passed_on_from_a_keyframe_whose_crops_failed(clock, make_frame):
+    rig = Rig(clock)
+    rig.send(rig.frames, make_frame(0))
+    rig.send(rig.masks, masks_for(0))
+    failed = MaskFeatures(frame_index=0, features=np.zeros((0, 8), np.float32), model="fake", error="CLIP out of memory")
+    rig.send(rig.features, with_view(failed, view_of(0)))
+    (feats,) = rig.got["tracks_features"]
+    assert feats.tracks == [] and ("features", 0) not in rig.core.calls
+    np.testing.assert_array_equal(feats.view, view_of(0))
+    assert rig.session.keyframes.failed == 1
+
+
+def test_a_view_that_overtook_its_masks_goes_out_after_them(clock, make_frame):
+    rig = Rig(clock, core=QuietTracker())
+    rig.send(rig.frames, make_frame(0))
+    rig.send(rig.features, with_view(features_for(0), view_of(0)))
+    assert rig.got["tracks_features"] == []
+    rig.send(rig.masks, masks_for(0))
+    (feats,) = rig.got["tracks_features"]  # the masks' changes and the view in one message
+    assert feats.frame_index == 0 and [t.track_id for t in feats.tracks] == [0]
+    np.testing.assert_array_equal(feats.view, view_of(0))
+
+
+def test_a_view_is_sent_again_to_a_restarted_fusion(clock, make_frame):
+    rig = Rig(clock, core=QuietTracker())
+    acks = rig.bus.publisher(Topics("robot0").frame_ack, FrameAck)
+    rig.send(rig.frames, make_frame(0))
+    rig.send(acks, FrameAck(frame_index=0, service="fusion", epoch=1, features_through=0))
+    rig.send(rig.masks, masks_for(0))
+    rig.send(rig.features, with_view(features_for(0), view_of(0)))
+    (first,) = rig.got["tracks_features"]
+    rig.send(acks, FrameAck(frame_index=0, service="fusion", epoch=2, features_through=0))  # a new fusion
+    again = rig.got["tracks_features"][1:]
+    assert [(f.serial, f.order) for f in again] == [(first.serial, first.order)]
+    np.testing.assert_array_equal(again[0].view, view_of(0))

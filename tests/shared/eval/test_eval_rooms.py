@@ -190,3 +190,30 @@ def test_command_line(tmp_path, capsys):
     assert main(["eval", "rooms", "--pred", str(tmp_path / "seq"), "--gt", str(gt)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "rooms.npz: missing" in err
+
+
+def test_room_type_queries_hit_only_a_room_matched_to_that_type(tmp_path):
+    """Three ground-truth rooms, two bedrooms and an office; the map has rooms 3 (matched to
+    bedroom A), 8 (to the office B) and 9, which covers only a quarter of bedroom C (IoU 0.25,
+    unmatched). "bedroom" answered by room 9 misses even though 9 lies in a bedroom; "office"
+    answered by 8 hits. Without a ranker there are no room queries."""
+    C = rect(8, 0, 12, 2)
+    gt = write_gt(tmp_path / "seq", [("a", "bedroom", A), ("b", "office", B), ("c", "bedroom", C)])
+    pred = write_map(tmp_path / "map", [3, 3, 3, 3, 8, 8, 8, 8, 9, -1, -1, -1])
+    ranked = {"bedroom": [9, 3, 8], "office": [8, 3]}
+    asked = []
+
+    def rank(text):
+        asked.append(text)
+        return ranked[text]
+
+    r = eval_rooms(pred, gt, rank_rooms=rank)
+    assert asked == ["bedroom", "office"]
+    assert r["room_type_top1"] == 0.5
+    assert [(q["query"], q["top_room"], q["gt_room"], q["hit"]) for q in r["room_queries"]] == [
+        ("bedroom", 9, None, False), ("office", 8, "b", True)]  # fmt: skip
+    ranked["bedroom"] = [3, 9]
+    assert eval_rooms(pred, gt, rank_rooms=rank)["room_type_top1"] == 1.0
+    ranked["office"] = []  # a map whose rooms have no features answers nothing
+    assert eval_rooms(pred, gt, rank_rooms=rank)["room_type_top1"] == 0.5
+    assert eval_rooms(pred, gt)["room_queries"] is None and eval_rooms(pred, gt)["room_type_top1"] is None

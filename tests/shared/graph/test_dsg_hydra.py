@@ -37,6 +37,9 @@ PLACES = [
 ROOM_OF = {0: 0, 1: 0, 2: 1, 3: 1, 4: 1}
 
 
+ROOM_FEATURE = (np.arange(8, dtype=np.float32) / np.linalg.norm(np.arange(8))).astype(np.float32)
+
+
 def _snapshot(seed=3, with_mesh=True, trajectory=True):
     rng = np.random.default_rng(seed)
     places = [
@@ -45,7 +48,7 @@ def _snapshot(seed=3, with_mesh=True, trajectory=True):
     ]
     rooms = [
         RoomNode(id=0, centroid=np.array([1.6, 1.5, 1.05]), name="kitchen", bbox_min=np.array([0.0, 0.0, 0.05]),
-                 bbox_max=np.array([4.0, 3.0, 2.45]), area_m2=12.0),
+                 bbox_max=np.array([4.0, 3.0, 2.45]), area_m2=12.0, feature=ROOM_FEATURE, name_score=0.61),
         RoomNode(id=1, centroid=np.array([7.0, 1.3, 1.0]), area_m2=7.5),
     ]  # fmt: skip
     segs = []
@@ -165,6 +168,9 @@ def test_rooms_carry_name_label_box_and_colour(saved):
     space = g.get_labelspace(key.layer, key.partition)
     r0 = g.get_node(sd.NodeSymbol("R", 0)).attributes
     assert r0.name == "kitchen" and space.get_category(r0.semantic_label) == "kitchen"
+    # The room's feature is a one-row semantic_feature, its name score in the metadata.
+    np.testing.assert_allclose(np.asarray(r0.semantic_feature), ROOM_FEATURE[None], atol=1e-7)
+    assert r0.metadata.get()["trackgraph"]["name_score"] == pytest.approx(0.61)
     assert np.allclose(r0.bounding_box.min, snap.rooms[0].bbox_min, atol=1e-6)
     assert np.allclose(r0.bounding_box.max, snap.rooms[0].bbox_max, atol=1e-6)
     assert np.array_equal(r0.color, segment_colors(np.array([0]))[0])

@@ -98,6 +98,15 @@ def test_openclip_batches_match_single_crops(encoder):
     np.testing.assert_allclose(batched, single, atol=1e-5)
 
 
+def test_openclip_view_is_the_whole_frame_through_the_image_tower(encoder):
+    image, _ = _keyframe(seed=4)
+    view = encoder.encode_view(image)
+    assert view.shape == (384,) and view.dtype == np.float32 and abs(np.linalg.norm(view) - 1.0) < 1e-5
+    np.testing.assert_array_equal(view, encoder.encode_image(image.rgb))
+    other, _ = _keyframe(seed=5)
+    assert not np.allclose(view, encoder.encode_view(other))
+
+
 def test_numpy_preprocessing_matches_open_clip_transform(encoder):
     from PIL import Image
 
@@ -153,6 +162,16 @@ def test_onnx_export_agrees_with_torch(encoder, onnx_dir):
     assert _rel_err(onnx.encode_text(TEXTS), encoder.encode_text(TEXTS)) < 1e-3
     assert _rel_err(onnx.encode_text(TEXTS[:1]), encoder.encode_text(TEXTS[:1])) < 1e-3  # batch of one
     assert _rel_err(onnx.encode_image(image.rgb), encoder.encode_image(image.rgb)) < 1e-3
+
+
+@pytest.mark.slow
+def test_onnx_view_is_the_whole_frame_through_the_image_tower(encoder, onnx_dir):
+    onnx = make_vl_encoder(VLEncoderConfig(backend="clip_onnx", model=ARCH, weights=str(onnx_dir)))
+    image, _ = _keyframe(seed=4)
+    view = onnx.encode_view(image)
+    assert view.shape == (384,) and view.dtype == np.float32 and abs(np.linalg.norm(view) - 1.0) < 1e-5
+    np.testing.assert_array_equal(view, onnx.encode_image(image.rgb))
+    assert _rel_err(view, encoder.encode_view(image)) < 1e-3
 
 
 @pytest.mark.slow
