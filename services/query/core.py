@@ -201,6 +201,16 @@ def _room_nodes(rooms: Iterable[RoomNode | int]) -> tuple[tuple[RoomNode, ...], 
     return tuple(featured[i] for i in sorted(featured)), ids
 
 
+def _checked(embedding: np.ndarray, dim: int, what: str, against: str) -> Annotated[np.ndarray, "(D,) float32"]:
+    """``embedding`` flat, or QueryError when it is not ``dim``-d and finite."""
+    emb = np.asarray(embedding, np.float32).reshape(-1)
+    if emb.shape[0] != dim or not np.isfinite(emb).all():
+        raise QueryError(
+            f"{what} is {emb.shape[0]}-d but the map's {against} are {dim}-d: the query encoder differs from the one that built the map"
+        )
+    return emb
+
+
 def _views(s: SegmentNode, min_share: float) -> SegmentNode:
     w = s.gallery_weights
     if min_share <= 0 or not w or min(w) >= min_share:
@@ -311,12 +321,7 @@ class QueryEngine:
         labels' embeddings) by margin over them, else by cosine with ``embedding``."""
         if not index.room_nodes:
             return []
-        emb = np.asarray(embedding, np.float32).reshape(-1)
-        if emb.shape[0] != index.room_dim or not np.isfinite(emb).all():
-            raise QueryError(
-                f"{what} is {emb.shape[0]}-d but the map's room features are {index.room_dim}-d: "
-                "the query encoder differs from the one that built the map"
-            )
+        emb = _checked(embedding, index.room_dim, what, "room features")
         scores = index.room_features @ _unit_rows(emb)
         margins = None
         if others is not None and others.shape[0] and others.shape[1] == index.room_dim:
@@ -351,12 +356,7 @@ class QueryEngine:
             raise QueryError(f"unknown room {room}; rooms in the graph: {known}")
         if not len(index):
             return []
-        emb = np.asarray(embedding, np.float32).reshape(-1)
-        if emb.shape[0] != index.dim or not np.isfinite(emb).all():
-            raise QueryError(
-                f"the query embedding is {emb.shape[0]}-d but the map's galleries are {index.dim}-d: "
-                "the query encoder differs from the one that built the map"
-            )
+        emb = _checked(embedding, index.dim, "the query embedding", "galleries")
         scores, rows = index.score(emb, req.gallery or self.cfg.gallery)
         keep = np.ones(len(index), bool)
         if room is not None:

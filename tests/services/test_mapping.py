@@ -72,8 +72,17 @@ def test_ground_truth_tracks_give_ap50_090_on_small(small, tmp_path, capsys):
     # The rooms' footprints beside the map: the dining room and the hall of `small`.
     from shared.eval.rooms import eval_rooms
 
-    rooms = eval_rooms(out, small / "gt")
+    from services.query.roomtypes import map_room_ranker
+
+    rooms = eval_rooms(out, small / "gt", rank_rooms=map_room_ranker(out))
     assert rooms["f1"] == 1.0 and rooms["n_pred"] == rooms["n_gt"] == 2, rooms
+    # Named from their views and contents (the oracle tracker's encoder answers vl/embed in
+    # one process), and each found by its type. The hall is glimpsed in 5 keyframes (every
+    # 24th frame), where its labels are within 0.01 of each other: only the dining room's name
+    # is pinned.
+    names = {r["gt_type"]: r["best_pred_name"] for r in rooms["per_room"]}
+    assert names["dining room"] == "dining room" and names["hall"], rooms
+    assert rooms["room_type_top1"] == 1.0, rooms
 
 
 def test_tracker_at_default_noise_gives_ap50_070_on_small(small, tmp_path):
@@ -144,3 +153,8 @@ def test_resume_gives_the_uninterrupted_graph(small, tmp_path):
     for a, b in zip(got.segments, reference.segments, strict=True):
         np.testing.assert_allclose(a.centroid, b.centroid, atol=1e-6)
         np.testing.assert_array_equal(a.gallery, b.gallery)
+    # The keyframe views and what they showed survive too: the rooms' features are the same.
+    assert sorted(resumed.views) == sorted(whole.views) and sorted(resumed.view_points) == sorted(whole.view_points)
+    assert [r.id for r in got.rooms] == [r.id for r in reference.rooms] and all(r.feature is not None for r in got.rooms)
+    for a, b in zip(got.rooms, reference.rooms, strict=True):
+        np.testing.assert_allclose(a.feature, b.feature, atol=1e-5)
