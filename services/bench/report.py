@@ -72,7 +72,7 @@ def markdown(res: dict[str, Any]) -> str:
         lines.append(f"- `{c['name']}` ({c['path']}): {b.get('segmenter')}, {b.get('vl_encoder')}, {b.get('dense_features')}")
     lines.append("")
 
-    lines += ["## Segmentation (OpenLex3D top-5, share of object points, 3 cm)", ""]
+    lines += [_alignment_note(res), "", "## Segmentation (OpenLex3D top-5, share of object points, 3 cm)", ""]
     lines += _table(
         ["config", *(k for k, _ in SEGMENTATION)],
         [[c["name"], *(_f(c["runs"]["3cm"]["eval"][key]) for _, key in SEGMENTATION)] for c in res["configs"]],
@@ -151,6 +151,18 @@ def markdown(res: dict[str, Any]) -> str:
     lines += hierarchy_table(res.get("hierarchy"))
     lines.append("")
     return "\n".join(lines)
+
+
+def _alignment_note(res: dict[str, Any]) -> str:
+    """Which instance alignment the OpenLex3D tables used (the toolbox's default is per_mask
+    at 0.001, squared L2); older results did not record it."""
+    seen = sorted({
+        (ev.get("alignment"), ev.get("alignment_threshold"))
+        for c in res["configs"] for r in c["runs"].values() if (ev := r.get("eval")) and ev.get("alignment")
+    })  # fmt: skip
+    if not seen:
+        return "OpenLex3D instance alignment: not recorded."
+    return "OpenLex3D instance alignment: " + ", ".join(f"`{a}` at {t:g}" for a, t in seen) + " (the public toolbox's default is `per_mask` at 0.001)."
 
 
 def hierarchy_table(rows: list[dict[str, Any]] | None) -> list[str]:

@@ -69,7 +69,10 @@ def evaluate_map(map_dir: Path, gt: Path) -> dict[str, Any]:
     gt_data, pred = load_gt(gt), load_prediction(map_dir)
     ol = evaluate_openlex3d(pred, gt_data, map_text_encoder(map_dir))
     inst = evaluate_instances(pred, gt_data)
-    keys = ("synonyms", "depictions", "vis_sim", "clutter", "missing", "incorrect", "ap", "ap50", "ap25", "top1_hit_rate")
+    keys = (
+        "synonyms", "depictions", "vis_sim", "clutter", "missing", "incorrect", "ap", "ap50", "ap25", "top1_hit_rate",
+        "alignment", "alignment_threshold",
+    )  # fmt: skip
     out: dict[str, Any] = {k: ol.get(k) for k in keys}
     out["instances"] = {k: inst.get(k) for k in ("ap", "ap50", "ap25", "segments_per_object")}
     out["gallery"] = top1_hit_rates(map_dir, gt)

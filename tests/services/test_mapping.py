@@ -70,9 +70,8 @@ def test_ground_truth_tracks_give_ap50_090_on_small(small, tmp_path, capsys):
     assert scores["ap50"] >= 0.9, scores
     assert scores["segments_per_object"] <= 1.1
     # The rooms' footprints beside the map: the dining room and the hall of `small`.
-    from shared.eval.rooms import eval_rooms
-
     from services.query.roomtypes import map_room_ranker
+    from shared.eval.rooms import eval_rooms
 
     rooms = eval_rooms(out, small / "gt", rank_rooms=map_room_ranker(out))
     assert rooms["f1"] == 1.0 and rooms["n_pred"] == rooms["n_gt"] == 2, rooms

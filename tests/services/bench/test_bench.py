@@ -246,3 +246,12 @@ def test_resume_scores_finished_maps_without_mapping_again(tmp_path, monkeypatch
     # without resume the maps are made again
     with pytest.raises(AssertionError, match="made again"):
         core.run_bench(tmp_path, sequence=seq, gt=seq, rate_trials=0, progress=False)
+
+
+def test_markdown_says_which_alignment_scored_it():
+    res = _result()
+    assert "OpenLex3D instance alignment: not recorded." in markdown(res)
+    for c in res["configs"]:
+        for r in c["runs"].values():
+            r["eval"].update(alignment="per_mask", alignment_threshold=0.001)
+    assert "OpenLex3D instance alignment: `per_mask` at 0.001 (the public toolbox's default" in markdown(res)
