@@ -102,6 +102,8 @@ def room_features(
     view_weight: float,
 ) -> dict[int, Annotated[np.ndarray, "(D,) float32 unit"]]:
     """Each room's feature (module docstring); rooms with neither source are left out."""
+    if not room_ids:
+        return {}
     wanted = set(room_ids)
     content: dict[int, list[np.ndarray]] = {}
     for s in segments.values():

@@ -155,3 +155,9 @@ def test_scene_graph_describes_rooms_with_the_segments_new_rooms() -> None:
     assert seen == {"rooms_of_segments": {1: 3}, "previous": {}}
     assert [r.name for r in delta.rooms] == ["room 3"]
     assert g.rooms[3].name == "room 3"
+
+
+def test_a_map_without_rooms_has_nothing_to_describe() -> None:
+    """No rooms yet (nothing mapped): no shares to reshape, no features, whatever the views."""
+    assert room_features([], {1: seg(1, None, [E[0]])}, np.zeros((0, 0)), np.zeros((0, 0)), 0.5) == {}
+    assert describe_rooms({}, {}, np.zeros((3, 0)), np.ones((3, D)), None, 0.5) == {}
