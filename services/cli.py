@@ -302,10 +302,9 @@ def _query_request(args: argparse.Namespace, text: str | None):
         raise CommandError(f"bad query: {'; '.join(str(exc).splitlines()[:2])}") from None
 
 
-def _print_hits(hits, as_json: bool, title: str) -> None:
-    from services.query.core import hit_rows
-
-    rows = hit_rows(hits)
+def _print_ranked(rows: list[dict], cells: list[list[str]], as_json: bool, title: str, columns: tuple[str, ...], left: tuple[str, ...], empty: str) -> None:
+    """``rows`` as the ``--json`` list, or a rich table of ``cells`` under ``columns`` (those in
+    ``left`` left-aligned), or ``empty`` when there are none."""
     if as_json:
         print(json.dumps(rows))
         return
@@ -313,38 +312,45 @@ def _print_hits(hits, as_json: bool, title: str) -> None:
     from rich.table import Table
 
     table = Table(title=title, show_header=True, header_style="bold")
-    for col in ("rank", "segment", "score", "centroid (m)", "size (m)", "room", "best track"):
-        table.add_column(col, justify="right" if col not in ("centroid (m)", "size (m)") else "left")
-    for i, (h, r) in enumerate(zip(hits, rows, strict=True), 1):
-        size = (h.bbox_max - h.bbox_min).tolist()
-        table.add_row(
-            str(i), str(h.segment), f"{h.score:.3f}", " ".join(f"{v:+.2f}" for v in r["centroid"]),
-            " x ".join(f"{v:.2f}" for v in size), "-" if h.room is None else str(h.room),
-            "-" if h.best_track is None else str(h.best_track),
-        )  # fmt: skip
-    Console().print(table if hits else f"{title}: no segments")
+    for col in columns:
+        table.add_column(col, justify="left" if col in left else "right")
+    for row in cells:
+        table.add_row(*row)
+    Console().print(table if cells else f"{title}: {empty}")
+
+
+def _centroid(r: dict) -> str:
+    return " ".join(f"{v:+.2f}" for v in r["centroid"])
+
+
+def _print_hits(hits, as_json: bool, title: str) -> None:
+    from services.query.core import hit_rows
+
+    rows = hit_rows(hits)
+    cells = [
+        [
+            str(i), str(h.segment), f"{h.score:.3f}", _centroid(r), " x ".join(f"{v:.2f}" for v in (h.bbox_max - h.bbox_min).tolist()),
+            "-" if h.room is None else str(h.room), "-" if h.best_track is None else str(h.best_track),
+        ]
+        for i, (h, r) in enumerate(zip(hits, rows, strict=True), 1)
+    ]  # fmt: skip
+    columns = ("rank", "segment", "score", "centroid (m)", "size (m)", "room", "best track")
+    _print_ranked(rows, cells, as_json, title, columns, ("centroid (m)", "size (m)"), "no segments")
 
 
 def _print_rooms(rooms, as_json: bool, title: str) -> None:
     from services.query.core import room_rows
 
     rows = room_rows(rooms)
-    if as_json:
-        print(json.dumps(rows))
-        return
-    from rich.console import Console
-    from rich.table import Table
-
-    table = Table(title=title, show_header=True, header_style="bold")
-    for col in ("rank", "room", "name", "score", "margin", "centroid (m)", "size (m)"):
-        table.add_column(col, justify="left" if col in ("name", "centroid (m)", "size (m)") else "right")
-    for i, (h, r) in enumerate(zip(rooms, rows, strict=True), 1):
-        size = "-" if r["bbox"] is None else " x ".join(f"{b - a:.2f}" for a, b in zip(*r["bbox"], strict=True))
-        table.add_row(
-            str(i), str(h.room), h.name or "-", f"{h.score:.3f}", "-" if h.margin is None else f"{h.margin:+.3f}",
-            " ".join(f"{v:+.2f}" for v in r["centroid"]), size,
-        )  # fmt: skip
-    Console().print(table if rooms else f"{title}: no room has a feature yet")
+    cells = [
+        [
+            str(i), str(h.room), h.name or "-", f"{h.score:.3f}", "-" if h.margin is None else f"{h.margin:+.3f}", _centroid(r),
+            "-" if r["bbox"] is None else " x ".join(f"{b - a:.2f}" for a, b in zip(*r["bbox"], strict=True)),
+        ]
+        for i, (h, r) in enumerate(zip(rooms, rows, strict=True), 1)
+    ]  # fmt: skip
+    columns = ("rank", "room", "name", "score", "margin", "centroid (m)", "size (m)")
+    _print_ranked(rows, cells, as_json, title, columns, ("name", "centroid (m)", "size (m)"), "no room has a feature yet")
 
 
 def _chosen_room(rooms) -> str:

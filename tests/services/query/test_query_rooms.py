@@ -196,15 +196,7 @@ def session_embed(env) -> EmbedReply:
     return EmbedReply(embedding=E[3] if text == WARMUP_TEXT else TEXTS[text], model="fake")
 
 
-class Clock:
-    def __init__(self) -> None:
-        self.t = 100.0
-
-    def __call__(self) -> float:
-        return self.t
-
-
-def test_the_session_embeds_room_text_through_its_deadline_and_cache():
+def test_the_session_embeds_room_text_through_its_deadline_and_cache(clock):
     bus = InProcessBus("robot0")
     embedded: list[str] = []
     timeouts: list[float] = []
@@ -220,7 +212,6 @@ def test_the_session_embeds_room_text_through_its_deadline_and_cache():
     bus.serve(TOPICS.vl_embed, EmbedRequest, EmbedReply, session_embed)
     graph = GraphSnapshot(graph_seq=1, frame_index=0, segments=SEGMENTS, rooms=ROOMS)
     bus.serve(TOPICS.graph_snapshot, SnapshotRequest, GraphSnapshot, lambda env: graph)
-    clock = Clock()
     # No room labels: this pins the deadline and the cache (the margin has its own test).
     cfg = TrackGraphConfig.model_validate({"transport": {"query_timeout_s": 2.0}, "fusion": {"graph": {"room_labels": []}}})
     session = QuerySession(cfg, bus, sync_wait_s=0, clock=clock)
