@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import os
 import sys
 from collections.abc import Callable
@@ -67,18 +68,32 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     from shared.synth import run_synth
 
     result = run_synth(args.preset, args.seed, args.out, overwrite=args.overwrite)
+    if args.rosbag is not None:
+        from shared.ros2.bagio import write_sequence_bag
+
+        bag = args.rosbag if args.rosbag.is_absolute() or args.rosbag.parent != Path(".") else Path(result["out"]) / args.rosbag
+        result["rosbag"] = str(write_sequence_bag(Path(result["out"]), bag, overwrite=args.overwrite, progress=not args.json).path)
     if args.json:
         print(json.dumps(result))
     else:
         print(f"wrote {result['frames']} frames with {result['objects']} objects to {result['out']}")
         print(f"  pictures: {Path(result['out']) / 'contact_sheet.png'}, {Path(result['out']) / 'topdown.png'}")
+        if "rosbag" in result:
+            print(f"  ROS 2 bag: {result['rosbag']}")
     return 0
 
 
 def _cmd_source(args: argparse.Namespace) -> int:
+    cfg = _load_or_default(args.config)
+    if args.ros2:
+        return _source_ros2(args, cfg)
+    if args.sequence is None:
+        raise CommandError("source: give SEQ_DIR (a sequence to replay), or --ros2 for a live robot's topics")
+    live_only = [f for f in ("convention", "domain", "seconds") if getattr(args, f) is not None]
+    if live_only:
+        raise CommandError(f"source: --{live_only[0]} is for --ros2 (a live robot), not for replaying {args.sequence}")
     from services.source.node import run_source
 
-    cfg = _load_or_default(args.config)
     src = cfg.source.model_dump()
     for key in ("dataset", "mode", "stride", "max_frames"):
         if getattr(args, key) is not None:
@@ -92,6 +107,68 @@ def _cmd_source(args: argparse.Namespace) -> int:
     stats = run_source(cfg, args.sequence, wait_subscribers_s=args.wait, status_file=args.status_file)
     out = {"published": stats.published, "dropped": stats.dropped, "seconds": round(stats.seconds, 3)}
     print(json.dumps(out) if args.json else f"published {stats.published} frames, dropped {stats.dropped}, in {stats.seconds:.1f} s")
+    return 0
+
+
+def _with_ros2(cfg, args: argparse.Namespace):
+    """``cfg`` with the ROS 2 command-line overrides (--connect, --convention, --domain)."""
+    data = cfg.model_dump()
+    if args.connect:
+        data["transport"]["connect"] = args.connect
+    if getattr(args, "convention", None):
+        data["ros2"]["link"]["convention"] = args.convention
+    if getattr(args, "domain", None) is not None:
+        data["ros2"]["link"]["domain_id"] = args.domain
+    from shared.config.base import validate
+
+    return validate(type(cfg), data, "command line")
+
+
+def _source_ros2(args: argparse.Namespace, cfg) -> int:
+    from services.ros2.node import run_ros2_source
+
+    if args.sequence is not None:
+        raise CommandError("source --ros2 takes its frames from the robot's topics: drop SEQ_DIR")
+    bad = [f for f in ("dataset", "mode", "stride", "max_frames", "rate") if getattr(args, f) is not None]
+    if bad:
+        raise CommandError(f"source --ros2: --{bad[0].replace('_', '-')} is for replaying a sequence (set ros2.input in the config)")
+    if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
+        raise CommandError(f"source --ros2: --seconds must be a positive number of seconds, got {args.seconds}")
+    cfg = _with_ros2(cfg, args)
+    stats = run_ros2_source(cfg, status_file=args.status_file, max_seconds=args.seconds)
+    out = {"published": stats.published, "dropped": stats.dropped, "seconds": stats.seconds, "received": stats.received, "rejected": stats.rejected, "error": stats.error}
+    print(json.dumps(out) if args.json else f"published {stats.published} frames, dropped {stats.dropped}, in {stats.seconds:.1f} s; rejected {stats.rejected or 'none'}")
+    return 0
+
+
+def _cmd_ros2_play(args: argparse.Namespace) -> int:
+    from services.ros2.node import play_bag
+    from shared.ros2.bagio import BagError
+
+    cfg = _with_ros2(_load_or_default(args.config), args)
+    try:
+        stats = play_bag(args.bag, cfg, rate=args.rate, topics=args.topic, wait_subscribers_s=args.wait, progress=not args.json)
+    except (BagError, ValueError) as e:
+        raise CommandError(str(e)) from None
+    out = {"messages": stats.messages, "topics": stats.topics, "seconds": stats.seconds, "late_s": stats.late_s}
+    print(json.dumps(out) if args.json else f"played {stats.messages} messages on {len(stats.topics)} topics in {stats.seconds:.1f} s (at most {stats.late_s:.3f} s late)")
+    return 0
+
+
+def _cmd_ros2_bag(args: argparse.Namespace) -> int:
+    from shared.ros2.bagio import BagError, write_sequence_bag
+
+    try:
+        # The writer replaces only a bag (a folder with metadata.yaml), and only once the new
+        # one is complete: a failed run keeps the old bag, and no other folder is ever deleted.
+        summary = write_sequence_bag(args.sequence, args.out, distro=args.distro, rate_hz=args.rate, compressed_rgb=args.compressed,
+                                     overwrite=args.overwrite, progress=not args.json)  # fmt: skip
+    except BagError as e:
+        raise CommandError(str(e)) from None
+    except ValueError as e:
+        raise CommandError(f"ros2 bag: {e}".replace("rate_hz", "--rate")) from None
+    out = {"out": str(summary.path), "frames": summary.frames, "seconds": summary.seconds, "topics": {t: list(v) for t, v in summary.topics.items()}}
+    print(json.dumps(out) if args.json else f"wrote {summary.frames} frames ({summary.seconds:.1f} s) as a ROS 2 bag to {summary.path}")
     return 0
 
 
@@ -550,11 +627,16 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--seed", type=int, default=0)
     sy.add_argument("--out", type=Path, required=True, metavar="DIR")
     sy.add_argument("--overwrite", action="store_true", help="replace a non-empty DIR")
-    sy.add_argument("--json", action="store_true", help='print {"frames", "objects", "out"}')
+    sy.add_argument("--rosbag", type=Path, metavar="BAG", help="also write the sequence as a ROS 2 bag (images, CameraInfo, TF); a bare name goes inside DIR")
+    sy.add_argument("--json", action="store_true", help='print {"frames", "objects", "out"} (and "rosbag" with --rosbag)')
     sy.set_defaults(func=_cmd_synth)
 
-    so = sub.add_parser("source", help="replay a sequence as frames over Zenoh")
-    so.add_argument("sequence", type=Path, metavar="SEQ_DIR")
+    so = sub.add_parser("source", help="replay a sequence as frames over Zenoh, or with --ros2 take a live robot's ROS 2 topics")
+    so.add_argument("sequence", type=Path, metavar="SEQ_DIR", nargs="?")
+    so.add_argument("--ros2", action="store_true", help="frames from the robot's ROS 2 camera and pose topics (config section ros2) until Ctrl-C")
+    so.add_argument("--convention", choices=["rmw_zenoh", "bridge"], help="--ros2: the ROS 2 key convention (default: the config's)")
+    so.add_argument("--domain", type=int, metavar="ID", help="--ros2: ROS_DOMAIN_ID (default: the config's)")
+    so.add_argument("--seconds", type=float, metavar="S", help="--ros2: stop after S seconds")
     so.add_argument("--config", type=Path, metavar="FILE")
     so.add_argument("--dataset", choices=["replica", "scannetpp", "hm3d", "tum", "rosbag"])
     so.add_argument("--mode", choices=["lossless", "live"])
@@ -564,7 +646,7 @@ def build_parser() -> argparse.ArgumentParser:
     so.add_argument("--connect", action="append", metavar="ENDPOINT", help="router endpoint(s)")
     so.add_argument("--wait", type=float, default=30.0, metavar="S", help="lossless: wait this long for a subscriber")
     so.add_argument("--status-file", type=Path, metavar="FILE", help="write the last ServiceStatus report here as JSON at stop")
-    so.add_argument("--json", action="store_true")
+    so.add_argument("--json", action="store_true", help='print {"published", "dropped", "seconds"} (--ros2 adds "received", "rejected", "error")')
     so.set_defaults(func=_cmd_source)
 
     mp = sub.add_parser("map", help="map a recorded sequence in-process (no Zenoh)")
@@ -648,7 +730,7 @@ def build_parser() -> argparse.ArgumentParser:
     ex.set_defaults(func=_cmd_export_onnx)
 
     sv = sub.add_parser("serve", help="run one service as this process, until Ctrl-C")
-    sv.add_argument("service", choices=["keyframe_vl", "tracker", "fusion", "query", "viewer"])
+    sv.add_argument("service", choices=["keyframe_vl", "tracker", "fusion", "query", "viewer", "ros2"])
     sv.add_argument("--config", type=Path, metavar="FILE")
     sv.add_argument("--connect", action="append", metavar="ENDPOINT", help="router endpoint(s)")
     sv.add_argument("--out", type=Path, metavar="PATH", help="fusion: the map folder (snapshots, final map); viewer: the .rrd recording")
@@ -696,6 +778,29 @@ def build_parser() -> argparse.ArgumentParser:
     br.add_argument("--random-weights", type=Path, metavar="DIR", help="run each config's models on random weights written to DIR: the real architectures' times and memory, meaningless maps")
     br.add_argument("--json", action="store_true", help='print {"out", "markdown", "json", "plots", "seconds"}')
     br.set_defaults(func=_cmd_bench_run)
+
+    r2 = sub.add_parser("ros2", help="ROS 2 bags over Zenoh: play one as a robot would send it, or write a sequence as one")
+    r2sub = r2.add_subparsers(dest="ros2_command", required=True, metavar="ACTION")
+    pl = r2sub.add_parser("play", help="publish a ROS 2 bag's topics over Zenoh at the recorded pace (rmw_zenoh or bridge convention)")
+    pl.add_argument("bag", type=Path, metavar="BAG")
+    pl.add_argument("--config", type=Path, metavar="FILE", help="transport and the ros2.link section (default: rmw_zenoh, domain 0)")
+    pl.add_argument("--connect", action="append", metavar="ENDPOINT", help="router endpoint(s)")
+    pl.add_argument("--convention", choices=["rmw_zenoh", "bridge"])
+    pl.add_argument("--domain", type=int, metavar="ID", help="ROS_DOMAIN_ID")
+    pl.add_argument("--rate", type=float, default=1.0, metavar="R", help="play R times the recorded pace (as ros2 bag play --rate)")
+    pl.add_argument("--topic", action="append", metavar="TOPIC", help="only these topics (repeatable; default all)")
+    pl.add_argument("--wait", type=float, default=0.0, metavar="S", help="first wait up to S seconds for subscribers of the sensor_msgs topics (images, CameraInfo)")
+    pl.add_argument("--json", action="store_true", help='print {"messages", "topics", "seconds", "late_s"}')
+    pl.set_defaults(func=_cmd_ros2_play)
+    bg = r2sub.add_parser("bag", help="write a sequence folder as a ROS 2 bag (colour, depth, CameraInfo, TF)")
+    bg.add_argument("sequence", type=Path, metavar="SEQ_DIR")
+    bg.add_argument("--out", type=Path, required=True, metavar="BAG")
+    bg.add_argument("--distro", choices=["humble", "iron", "jazzy", "kilted"], default="jazzy", help="message definitions written into the bag")
+    bg.add_argument("--rate", type=float, metavar="HZ", help="frame rate of the stamps (default the sequence's, else 30)")
+    bg.add_argument("--compressed", action="store_true", help="colour as JPEG CompressedImage on .../compressed")
+    bg.add_argument("--overwrite", action="store_true", help="replace an existing BAG")
+    bg.add_argument("--json", action="store_true", help='print {"out", "frames", "seconds", "topics"}')
+    bg.set_defaults(func=_cmd_ros2_bag)
 
     la = sub.add_parser("launch", help="start a router and every service of a launch file as separate processes")
     la.add_argument("file", type=Path, metavar="LAUNCH_FILE", help="e.g. deploy/local.yaml")

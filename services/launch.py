@@ -88,7 +88,8 @@ def plan_launch(
     sequence = sequence or (Path(launch.sequence) if launch.sequence else None)
     out = out or (Path(launch.out) if launch.out else None)
     names = {s.name for s in launch.services}
-    if "source" in names and sequence is None:
+    live = any(s.name == "source" and "--ros2" in s.args for s in launch.services)
+    if "source" in names and sequence is None and not live:
         raise ConfigError(f"{path}: the source needs a sequence: set 'sequence' or pass --sequence SEQ_DIR")
     if sequence is not None and not Path(sequence).is_dir():
         raise ConfigError(f"{sequence}: no such sequence folder")
@@ -131,7 +132,10 @@ def plan_launch(
             if spec.zenoh_config is not None:
                 cmd += ["--zenoh-config", str(rel(spec.zenoh_config))]
         elif spec.name == "source":
-            cmd = [*py, "source", str(sequence), "--config", str(cfg_file), "--status-file", str(status_path(log_dir, spec.name))]
+            # A live source takes the robot's topics; a sequence given with it only lends its
+            # ground truth to simulated backends (prepare_config above).
+            seq_arg = [] if "--ros2" in spec.args else [str(sequence)]
+            cmd = [*py, "source", *seq_arg, "--config", str(cfg_file), "--status-file", str(status_path(log_dir, spec.name))]
         else:
             cmd = [*py, "serve", spec.name, "--config", str(cfg_file), "--status-file", str(status_path(log_dir, spec.name))]
             if spec.name == "fusion":

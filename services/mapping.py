@@ -41,8 +41,20 @@ waits for the map to finish before it calls the pipeline stuck."""
 
 def prepare_config(cfg: TrackGraphConfig, seq_dir: Path) -> TrackGraphConfig:
     """Point every simulated backend whose ground truth is unset at the sequence, when it is
-    synthetic (no message carries ground truth; see ``TrackGraphConfig.with_ground_truth``)."""
-    return cfg.with_ground_truth(seq_dir)
+    synthetic (no message carries ground truth; see ``TrackGraphConfig.with_ground_truth``).
+    A ROS 2 bag written from a synthetic sequence (``trackgraph synth --rosbag``) names that
+    sequence in its metadata; its ground truth is used."""
+    seq = Path(seq_dir)
+    if not (seq / "instances").is_dir() and _is_bag(seq):
+        from shared.ros2.bagio import bag_source_sequence
+
+        seq = bag_source_sequence(seq) or seq
+    return cfg.with_ground_truth(seq)
+
+
+def _is_bag(path: Path) -> bool:
+    """A ROS 2 bag folder (``metadata.yaml``) or one bag file."""
+    return (path / "metadata.yaml").is_file() or (path.is_file() and path.suffix in (".mcap", ".db3"))
 
 
 def run_map(

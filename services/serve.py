@@ -9,14 +9,17 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from shared.config.root import TrackGraphConfig
 from shared.runtime.lifeline import install_stop_handlers, start_lifeline
 
 log = logging.getLogger(__name__)
 
-SERVICES = ("keyframe_vl", "tracker", "fusion", "query", "viewer")
+SERVICES = ("keyframe_vl", "tracker", "fusion", "query", "viewer", "ros2")
 
 
 def build_node(service: str, cfg: TrackGraphConfig, *, out: Path | None = None, resume: bool = False):
@@ -51,6 +54,10 @@ def build_node(service: str, cfg: TrackGraphConfig, *, out: Path | None = None, 
         if out is None:
             raise ValueError("the viewer needs --out FILE.rrd for its recording")
         return ViewerNode(cfg, out)
+    if service == "ros2":
+        from services.ros2.node import Ros2BridgeNode
+
+        return Ros2BridgeNode(cfg)
     raise ValueError(f"unknown service {service!r}; expected one of {', '.join(SERVICES)}")
 
 
@@ -63,14 +70,19 @@ def serve(
     exit_at_end: bool = False,
     stop: threading.Event | None = None,
     status_file: Path | None = None,
-) -> None:
+    make_node: Callable[[], Any] | None = None,
+    max_seconds: float | None = None,
+) -> Any:
+    """Run ``service`` (``build_node``'s, or ``make_node()``'s) until stopped, or for
+    ``max_seconds``; returns the node, closed."""
     stop = stop or threading.Event()
     install_stop_handlers(stop.set)
     lifeline = start_lifeline()  # launched: end with the launcher, however it ends
     from shared.runtime.status import StatusReporter
     from shared.topics import Topics
 
-    node = build_node(service, cfg, out=out, resume=resume)
+    node = make_node() if make_node is not None else build_node(service, cfg, out=out, resume=resume)
+    started = time.monotonic()
     heartbeat = cfg.transport if service in cfg.transport.status_heartbeat else None
     reporter = StatusReporter(node.book, node.bus, Topics(cfg.robot_id).status(service), heartbeat=heartbeat)
     try:
@@ -80,7 +92,9 @@ def serve(
         if lifeline is not None:
             lifeline.stop_with(stop.set)  # up: from now on the launcher's death is an orderly stop
         log.info("%s serving as robot %s", service, cfg.robot_id)
-        while not stop.wait(1.0):
+        while not stop.wait(1.0 if max_seconds is None else min(1.0, max(max_seconds - (time.monotonic() - started), 0.01))):
+            if max_seconds is not None and time.monotonic() - started >= max_seconds:
+                break
             if exit_at_end and getattr(node, "finished", None) is not None and node.finished.is_set():
                 break
             log.debug("%s: %s", service, node.stats())
@@ -91,3 +105,4 @@ def serve(
         if lifeline is not None:
             lifeline.close()
         log.info("%s stopped: %s", service, node.stats())
+    return node

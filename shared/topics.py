@@ -8,7 +8,7 @@ from shared.config.root import ROBOT_ID
 
 PREFIX = "trackgraph"
 
-SERVICES = ("source", "tracker", "keyframe_vl", "fusion", "query", "viewer")
+SERVICES = ("source", "tracker", "keyframe_vl", "fusion", "query", "viewer", "ros2")
 """Services that announce themselves with a liveliness token."""
 
 

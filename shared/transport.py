@@ -48,6 +48,8 @@ def zenoh_config(cfg: TransportConfig) -> zenoh.Config:
     zc.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
     zc.insert_json5("scouting/gossip/enabled", json.dumps(cfg.gossip_scouting))
     zc.insert_json5("transport/shared_memory/enabled", json.dumps(cfg.shared_memory))
+    if cfg.timestamping:
+        zc.insert_json5("timestamping/enabled", json.dumps({"router": True, "peer": True, "client": True}))
     return zc
 
 

@@ -26,6 +26,7 @@ API_FLOORS = {
     # 8.3.0 names FastSAM's half precision `half`, later ones `quantize`: predict gets neither
     # (autocast), and the ONNX export passes the one the installed version has.
     "ultralytics": ("8.3", "FastSAM, predict(retina_masks=, max_det=), export(format='onnx', dynamic=)"),
+    "rosbags": ("0.11", "Stores.ROS2_JAZZY and ROS2_KILTED, Typestore.hash_rihs01 (shared/ros2/types.py)"),
     "torch": ("2.2", "torch.autocast on CPU with bfloat16; fp16 on CPU is refused below 2.5"),
 }
 """The lowest version with every API the code calls, and which APIs set it."""

@@ -10,7 +10,7 @@ from pydantic import Field, model_validator
 
 from shared.config.base import StrictModel, load_model
 
-ServiceName = Literal["router", "source", "keyframe_vl", "tracker", "fusion", "query", "viewer"]
+ServiceName = Literal["router", "source", "keyframe_vl", "tracker", "fusion", "query", "viewer", "ros2"]
 
 
 class RestartPolicy(StrictModel):
@@ -47,8 +47,8 @@ class ServiceSpec(StrictModel):
     """Overrides the launch file's policy for this service."""
     finite: bool | None = None
     """It ends by itself when its job is done, and exit 0 then means finished rather than
-    crashed. Default: true for ``source`` (a recorded sequence) and for ``fusion`` with
-    ``--exit-at-end``."""
+    crashed. Default: true for ``source`` replaying a recorded sequence (not a live
+    ``--ros2`` one) and for ``fusion`` with ``--exit-at-end``."""
     zenoh_config: str | None = None
     """Zenoh JSON5 file for this process (TLS, credentials), relative to the launch file."""
 
@@ -56,7 +56,7 @@ class ServiceSpec(StrictModel):
     def is_finite(self) -> bool:
         if self.finite is not None:
             return self.finite
-        return self.name == "source" or (self.name == "fusion" and "--exit-at-end" in self.args)
+        return (self.name == "source" and "--ros2" not in self.args) or (self.name == "fusion" and "--exit-at-end" in self.args)
 
 
 class LaunchConfig(StrictModel):

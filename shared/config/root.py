@@ -11,6 +11,7 @@ from shared.config.base import ConfigError, StrictModel, load_model
 from shared.config.fusion import FusionConfig
 from shared.config.keyframe_vl import KeyframeVLConfig
 from shared.config.query import QueryConfig
+from shared.config.ros2 import Ros2Config
 from shared.config.source import SourceConfig
 from shared.config.tracker import TrackerConfig
 from shared.config.transport import TransportConfig
@@ -35,6 +36,9 @@ class TrackGraphConfig(StrictModel):
     """TSDF, segments and the scene graph."""
     query: QueryConfig = Field(default_factory=QueryConfig)
     """Retrieval."""
+    ros2: Ros2Config = Field(default_factory=Ros2Config)
+    """ROS 2 on the wire: the robot's topics in (``trackgraph source --ros2``), markers and
+    queries out (``trackgraph serve ros2``)."""
 
     @field_validator("robot_id")
     @classmethod

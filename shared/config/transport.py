@@ -74,12 +74,16 @@ class TransportConfig(StrictModel):
     start later than the service)."""
     query_timeout_s: float = Field(2.0, gt=0)
     """Default timeout of request/reply calls (snapshot, embed, query)."""
+    timestamping: bool = True
+    """Zenoh stamps each sample with its hybrid logical clock. Zenoh's advanced publishers
+    (ROS 2's transient-local topics: the scene-graph markers, ``/tf_static``) need it, and
+    rmw_zenoh's own session config turns it on; the cost is 16 bytes a sample."""
     zenoh_config_file: str | None = None
     """Optional Zenoh JSON5 file (TLS, user/password, access control) applied before the
     fields above."""
     codec: CodecConfig = Field(default_factory=CodecConfig)
     """Encoding and decoding limits of this process's links."""
-    status_heartbeat: list[Literal["source", "keyframe_vl", "tracker", "fusion", "query", "viewer"]] = Field(
+    status_heartbeat: list[Literal["source", "keyframe_vl", "tracker", "fusion", "query", "viewer", "ros2"]] = Field(
         default_factory=lambda: ["fusion"]
     )
     """Services whose status reports go out through a heartbeat process of their own, so that

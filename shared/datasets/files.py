@@ -79,15 +79,19 @@ def read_rgb(path: Path) -> Annotated[np.ndarray, "(H, W, 3) uint8"]:
 
 def read_uint16(path: Path, what: str = "depth") -> Annotated[np.ndarray, "(H, W) uint16"]:
     """A 16-bit single-channel PNG (depth in units, or instance ids + 1)."""
-    im = _open_image(path)
+    return uint16_pixels(_open_image(path), str(path), what)
+
+
+def uint16_pixels(im: Image.Image, where: str, what: str = "depth") -> Annotated[np.ndarray, "(H, W) uint16"]:
+    """The values of a decoded 16-bit single-channel image (Pillow gives I;16 or I)."""
     if im.mode in _UINT16_MODES:
         return np.asarray(im).astype(np.uint16)
     if im.mode == "I":
         a = np.asarray(im)
         if a.size and (a.min() < 0 or a.max() > 65535):
-            raise DatasetError(f"{path}: {what} values outside the 16-bit range")
+            raise DatasetError(f"{where}: {what} values outside the 16-bit range")
         return a.astype(np.uint16)
-    raise DatasetError(f"{path}: expected a 16-bit single-channel {what} PNG, got mode {im.mode}")
+    raise DatasetError(f"{where}: expected a 16-bit single-channel {what} PNG, got mode {im.mode}")
 
 
 def check_size(

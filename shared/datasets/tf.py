@@ -4,10 +4,16 @@ Like tf2, a dynamic transform is interpolated between the samples that bracket t
 time (linear translation, slerp rotation). Unlike tf2, a query up to ``max_gap_ns`` outside
 the recorded span takes the nearest sample instead of failing, because drivers often stamp
 the first image a few milliseconds before the first odometry transform.
+
+For a live stream (:mod:`shared.ros2.live`) the buffer also answers which dynamic edges a
+lookup needs and how new each one is, refuses to interpolate across a gap wider than a
+tolerance (``max_bracket_ns``), and forgets old samples (:meth:`TfBuffer.prune`), so its
+memory stays bounded however long the robot runs.
 """
 
 from __future__ import annotations
 
+import bisect
 import logging
 from dataclasses import dataclass, field
 from typing import Annotated
@@ -75,12 +81,15 @@ class TfBuffer:
         if s.parent != parent:
             log.warning("TF frame %r re-parented from %r to %r; using %r", child, s.parent, parent, parent)
             self._dynamic[child] = s = _Samples(parent)
-        s.stamps.append(int(stamp_ns))
+        stamp_ns = int(stamp_ns)
+        if s.stamps and stamp_ns < s.stamps[-1]:
+            self._sorted = False  # sorted lazily, once, before the next lookup (bags interleave topics)
+        s.stamps.append(stamp_ns)
         s.t.append(np.asarray(t_xyz, dtype=np.float64))
         s.q.append(np.asarray(q_wxyz, dtype=np.float64))
-        self._sorted = False
 
     def frames(self) -> set[str]:
+        """Every frame name the buffer knows, as parent or child."""
         names = set(self._static) | set(self._dynamic)
         names |= {p for p, _ in self._static.values()} | {s.parent for s in self._dynamic.values()}
         return names
@@ -106,43 +115,137 @@ class TfBuffer:
             chain.append(p)
         return chain
 
-    def _edge(self, child: str, stamp_ns: int, max_gap_ns: int) -> Pose | None:
+    def _edge(self, child: str, stamp_ns: int, max_gap_ns: int, max_bracket_ns: int | None = None) -> Pose | None:
         if child in self._static:
             return self._static[child][1]
         s = self._dynamic[child]
-        k = int(np.searchsorted(s.stamps, stamp_ns))
+        k = bisect.bisect_left(s.stamps, stamp_ns)
         if k < len(s.stamps) and s.stamps[k] == stamp_ns:
             return pose_from_quat(s.t[k], s.q[k])
         if k == 0 or k == len(s.stamps):
             j = 0 if k == 0 else len(s.stamps) - 1
             return pose_from_quat(s.t[j], s.q[j]) if abs(s.stamps[j] - stamp_ns) <= max_gap_ns else None
+        if max_bracket_ns is not None and max(stamp_ns - s.stamps[k - 1], s.stamps[k] - stamp_ns) > max_bracket_ns:
+            return None  # a gap in the stream: interpolating across it would invent motion
         a = (stamp_ns - s.stamps[k - 1]) / (s.stamps[k] - s.stamps[k - 1])
         t = (1 - a) * s.t[k - 1] + a * s.t[k]
         return pose_from_quat(t, slerp(s.q[k - 1], s.q[k], a))
 
-    def _to_ancestor(self, chain: list[str], ancestor: str, stamp_ns: int, max_gap_ns: int) -> Pose | None:
+    def _to_ancestor(
+        self, chain: list[str], ancestor: str, stamp_ns: int, max_gap_ns: int, max_bracket_ns: int | None = None
+    ) -> Pose | None:
         T = np.eye(4)
         for frame in chain[: chain.index(ancestor)]:
-            E = self._edge(frame, stamp_ns, max_gap_ns)
+            E = self._edge(frame, stamp_ns, max_gap_ns, max_bracket_ns)
             if E is None:
                 return None
             T = E @ T
         return T
 
-    def lookup(self, target: str, source: str, stamp_ns: int, max_gap_ns: int) -> Pose | None:
+    def _path(self, target: str, source: str) -> tuple[list[str], list[str], str]:
+        """Chains up from ``source`` and ``target`` and their first common frame."""
+        up_s, up_t = self._chain(source), self._chain(target)
+        common = next((f for f in up_s if f in set(up_t)), None)
+        if common is None:
+            raise LookupError(f"TF frames {target!r} and {source!r} are not connected")
+        return up_s, up_t, common
+
+    def lookup(
+        self, target: str, source: str, stamp_ns: int, max_gap_ns: int, max_bracket_ns: int | None = None
+    ) -> Pose | None:
         """``T_target_source`` at ``stamp_ns``; None when a dynamic link has no sample near it.
 
+        ``max_gap_ns``: how far before the first or after the last sample of a dynamic link
+        its nearest sample still answers. ``max_bracket_ns`` (None: no limit): interpolate
+        only between samples that are each at most this far from ``stamp_ns``.
         Raises LookupError when the two frames are not in one tree.
         """
         if not self._sorted:
             self._sort()
         target, source = normalize_frame(target), normalize_frame(source)
-        up_s, up_t = self._chain(source), self._chain(target)
-        common = next((f for f in up_s if f in set(up_t)), None)
-        if common is None:
-            raise LookupError(f"TF frames {target!r} and {source!r} are not connected")
-        T_common_source = self._to_ancestor(up_s, common, stamp_ns, max_gap_ns)
-        T_common_target = self._to_ancestor(up_t, common, stamp_ns, max_gap_ns)
+        up_s, up_t, common = self._path(target, source)
+        T_common_source = self._to_ancestor(up_s, common, stamp_ns, max_gap_ns, max_bracket_ns)
+        T_common_target = self._to_ancestor(up_t, common, stamp_ns, max_gap_ns, max_bracket_ns)
         if T_common_source is None or T_common_target is None:
             return None
         return invert(T_common_target) @ T_common_source
+
+    # -- live streams: what a lookup needs, how new it is, and forgetting -------------------
+
+    def dynamic_edges(self, target: str, source: str) -> list[str]:
+        """Child frames of the dynamic links a ``target <- source`` lookup goes through
+        (static links never lack a sample). Raises LookupError when not in one tree."""
+        target, source = normalize_frame(target), normalize_frame(source)
+        up_s, up_t, common = self._path(target, source)
+        links = up_s[: up_s.index(common)] + up_t[: up_t.index(common)]
+        return [f for f in links if f not in self._static and f in self._dynamic]
+
+    def is_static(self, child: str) -> bool:
+        """True if ``child``'s link to its parent came from /tf_static."""
+        return normalize_frame(child) in self._static
+
+    def static_frames(self) -> list[str]:
+        """Child frames linked to their parent by /tf_static."""
+        return list(self._static)
+
+    def dynamic_parent(self, child: str) -> str | None:
+        """The parent of ``child``'s dynamic link, or None if it has none."""
+        s = self._dynamic.get(normalize_frame(child))
+        return None if s is None else s.parent
+
+    def dynamic_frames(self) -> list[str]:
+        """Child frames that have time-stamped samples."""
+        return list(self._dynamic)
+
+    def latest_stamp(self, child: str) -> int | None:
+        """Newest sample stamp (ns) of ``child``'s dynamic link; None if it has none."""
+        s = self._dynamic.get(normalize_frame(child))
+        if s is None or not s.stamps:
+            return None
+        if not self._sorted:
+            self._sort()
+        return s.stamps[-1]
+
+    def oldest_stamp(self, child: str) -> int | None:
+        """Oldest sample stamp (ns) still held for ``child``'s dynamic link."""
+        s = self._dynamic.get(normalize_frame(child))
+        if s is None or not s.stamps:
+            return None
+        if not self._sorted:
+            self._sort()
+        return s.stamps[0]
+
+    def latest_stamps(self) -> dict[str, int]:
+        """Newest sample stamp (ns) of every dynamic link, by child frame."""
+        if not self._sorted:
+            self._sort()
+        return {child: s.stamps[-1] for child, s in self._dynamic.items() if s.stamps}
+
+    def prune(self, max_age_ns: int) -> int:
+        """Forget dynamic samples older than their link's newest by more than ``max_age_ns``
+        (tf2's cache time); returns how many were dropped. The newest sample always stays."""
+        if not self._sorted:
+            self._sort()
+        dropped = 0
+        for s in self._dynamic.values():
+            if not s.stamps or s.stamps[0] >= s.stamps[-1] - max_age_ns:
+                continue
+            k = bisect.bisect_left(s.stamps, s.stamps[-1] - max_age_ns)
+            del s.stamps[:k], s.t[:k], s.q[:k]
+            dropped += k
+        return dropped
+
+    def remove(self, child: str) -> None:
+        """Forget ``child``'s dynamic link (a publisher that went away)."""
+        self._dynamic.pop(normalize_frame(child), None)
+
+    def clear(self, static: bool = False) -> None:
+        """Forget every dynamic link (after a clock jump), and the static ones if ``static``."""
+        self._dynamic.clear()
+        self._sorted = True
+        if static:
+            self._static.clear()
+
+    def sample_count(self) -> int:
+        """Dynamic samples held, all links together (for memory bounds)."""
+        return sum(len(s.stamps) for s in self._dynamic.values())

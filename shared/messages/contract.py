@@ -91,7 +91,8 @@ CONTRACT: tuple[KeyContract, ...] = (
     ),
     KeyContract(
         "tracks_frame", f"{_R}/tracks/frame", "pub/sub", TrackedFrame, None, ("tracker",),
-        (Listener("fusion", "fifo"), Listener("viewer", "latest", "shows the newest frame only")),
+        (Listener("fusion", "fifo"), Listener("viewer", "latest", "shows the newest frame only"),
+         Listener("ros2", "latest", "the trajectory as a nav_msgs/Path")),
         "Each frame with its per-pixel source-track ids.",
     ),
     KeyContract(
@@ -104,12 +105,14 @@ CONTRACT: tuple[KeyContract, ...] = (
     ),
     KeyContract(
         "graph_delta", f"{_R}/graph/delta", "pub/sub", GraphDelta, None, ("fusion",),
-        (Listener("query", "fifo"), Listener("viewer", "fifo"), Listener("clients", "fifo", "a gap in graph_seq: ask graph/snapshot")),
+        (Listener("query", "fifo"), Listener("viewer", "fifo"), Listener("ros2", "fifo", "MarkerArray for RViz"),
+         Listener("clients", "fifo", "a gap in graph_seq: ask graph/snapshot")),
         "Scene-graph changes, numbered by graph_seq.",
     ),
     KeyContract(
         "graph_snapshot", f"{_R}/graph/snapshot", "query/reply", SnapshotRequest, GraphSnapshot, ("fusion",),
-        (Listener("query", "request", "at start and after a gap"), Listener("viewer", "request"), Listener("clients", "request")),
+        (Listener("query", "request", "at start and after a gap"), Listener("viewer", "request"), Listener("ros2", "request"),
+         Listener("clients", "request")),
         "The whole graph at its current version.", congestion=None,
     ),
     KeyContract(
@@ -121,18 +124,19 @@ CONTRACT: tuple[KeyContract, ...] = (
     ),
     KeyContract(
         "query", f"{_R}/query", "query/reply", QueryRequest, QueryReply, ("query",),
-        (Listener("clients", "request", "trackgraph query --live, services.query.client.QueryClient"),),
+        (Listener("clients", "request", "trackgraph query --live, services.query.client.QueryClient"),
+         Listener("ros2", "request", "queries from ROS 2 (ros2.output.query_topic)")),
         "Ranked segments for a text or image query (eq. 10).", congestion=None,
     ),
     KeyContract(
         "status", f"{_R}/status/<service>", "pub/sub", ServiceStatus, None,
-        ("source", "tracker", "keyframe_vl", "fusion", "query", "viewer"),
+        ("source", "tracker", "keyframe_vl", "fusion", "query", "viewer", "ros2"),
         (Listener("launcher", "latest", "trackgraph launch's table"), Listener("clients", "latest", "trackgraph status, the bench")),
         "Each service's counters and progress, once a second and once at stop.",
     ),
     KeyContract(
         "alive", f"{_R}/alive/<service>", "liveliness", None, None,
-        ("source", "tracker", "keyframe_vl", "fusion", "query", "viewer"),
+        ("source", "tracker", "keyframe_vl", "fusion", "query", "viewer", "ros2"),
         (Listener("launcher", "latest", "a token gone for launch.unresponsive_s restarts the service"),),
         "A Zenoh liveliness token per running service (no payload).", congestion=None,
     ),

@@ -88,7 +88,7 @@ def test_decode_raw_images() -> None:
     np.testing.assert_array_equal(out, [[1234, 0], [0, 0]])  # NaN, negative, beyond 65.5 m: no reading
     with pytest.raises(DatasetError, match="w: .* needs"):
         decode_colour(SimpleNamespace(encoding="rgb8", height=2, width=4, step=12, is_bigendian=0, data=np.zeros(5, np.uint8)), "w")
-    with pytest.raises(DatasetError, match="compressed depth is not supported"):
+    with pytest.raises(DatasetError, match="w: compressedDepth data of 0 bytes has no image"):
         decode_depth(SimpleNamespace(format="16UC1; compressedDepth png", data=b""), 1000.0, "w")
 
 
