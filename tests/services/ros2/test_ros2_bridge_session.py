@@ -20,14 +20,6 @@ from shared.runtime.bus import InProcessBus
 from shared.topics import Topics
 
 
-class Clock:
-    def __init__(self) -> None:
-        self.t = 100.0
-
-    def __call__(self) -> float:
-        return self.t
-
-
 def segment(i: int) -> SegmentNode:
     lo = np.array([i, 0.0, 0.0])
     return SegmentNode(
@@ -45,8 +37,7 @@ def frame(i: int) -> TrackedFrame:
 
 
 @pytest.fixture
-def rig():
-    clock = Clock()
+def rig(clock):
     bus = InProcessBus(clock=clock)
     wire = InProcessRosWire()
     cfg = TrackGraphConfig()

@@ -22,14 +22,6 @@ T0_NS = 1_700_000_000 * 10**9
 CAM = "camera_color_optical_frame"
 
 
-class Clock:
-    def __init__(self) -> None:
-        self.t = 50.0
-
-    def __call__(self) -> float:
-        return self.t
-
-
 def M(name: str):
     return msg_class(name)
 
@@ -66,8 +58,7 @@ def tf(stamp_ns: int, x: float):
 
 
 @pytest.fixture
-def rig():
-    clock = Clock()
+def rig(clock):
     bus = InProcessBus(clock=clock)
     wire = InProcessRosWire()
     cfg = TrackGraphConfig()
