@@ -67,7 +67,14 @@ def _load_or_default(path: Path | None):
 def _cmd_synth(args: argparse.Namespace) -> int:
     from shared.synth import run_synth
 
-    result = run_synth(args.preset, args.seed, args.out, overwrite=args.overwrite)
+    if args.drift is not None:
+        from shared.synth.drift import validate_rate
+
+        try:
+            validate_rate(args.drift)  # before the minutes of rendering, not after
+        except ValueError as exc:
+            raise CommandError(f"--drift: {exc}") from None
+    result = run_synth(args.preset, args.seed, args.out, overwrite=args.overwrite, drift=args.drift)
     if args.rosbag is not None:
         from shared.ros2.bagio import write_sequence_bag
 
@@ -80,6 +87,10 @@ def _cmd_synth(args: argparse.Namespace) -> int:
         print(f"  pictures: {Path(result['out']) / 'contact_sheet.png'}, {Path(result['out']) / 'topdown.png'}")
         if "rosbag" in result:
             print(f"  ROS 2 bag: {result['rosbag']}")
+        if "drift" in result:
+            out = Path(result["out"])
+            print(f"  odometry drift {result['drift']:g} m/m: {out / 'traj.txt'} (drifted), {out / 'traj_gt.txt'} (true), "
+                  f"{result['corrections']} corrections in {out / 'corrections.jsonl'}, picture {out / 'drift.png'}")
     return 0
 
 
@@ -100,6 +111,8 @@ def _cmd_source(args: argparse.Namespace) -> int:
             src[key] = getattr(args, key)
     if args.rate is not None:
         src["rate_hz"] = args.rate
+    if args.corrections is not None:
+        src["corrections"] = str(_corrections_file(args.corrections))
     update = {"source": type(cfg.source).model_validate(src)}
     if args.connect:
         update["transport"] = cfg.transport.model_copy(update={"connect": args.connect})
@@ -172,13 +185,25 @@ def _cmd_ros2_bag(args: argparse.Namespace) -> int:
     return 0
 
 
+def _corrections_file(path: Path) -> Path:
+    """A corrections file that reads (every line a valid PoseCorrection), or a one-line reason."""
+    from shared.messages.poses import CorrectionsFileError, read_corrections
+
+    try:
+        read_corrections(path)
+    except CorrectionsFileError as e:
+        raise CommandError(str(e)) from None
+    return path.resolve()
+
+
 def _cmd_map(args: argparse.Namespace) -> int:
     from services.mapping import run_map
 
     cfg = _load_or_default(args.config)
+    corrections = None if args.corrections is None else _corrections_file(args.corrections)
     summary = run_map(
         args.sequence, cfg, args.out, dataset=args.dataset, save_tracks=args.save_tracks,
-        stride=args.stride, max_frames=args.max_frames, progress=not args.json,
+        stride=args.stride, max_frames=args.max_frames, progress=not args.json, corrections=corrections,
     )  # fmt: skip
     if args.json:
         print(json.dumps(summary))
@@ -628,7 +653,11 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--out", type=Path, required=True, metavar="DIR")
     sy.add_argument("--overwrite", action="store_true", help="replace a non-empty DIR")
     sy.add_argument("--rosbag", type=Path, metavar="BAG", help="also write the sequence as a ROS 2 bag (images, CameraInfo, TF); a bare name goes inside DIR")
-    sy.add_argument("--json", action="store_true", help='print {"frames", "objects", "out"} (and "rosbag" with --rosbag)')
+    sy.add_argument("--drift", type=float, metavar="RATE",
+                    help="odometry drift in metres per metre travelled (0 < RATE <= 0.5): writes traj.txt drifted, "
+                         "the true poses to traj_gt.txt and the loop-closure corrections to corrections.jsonl")
+    sy.add_argument("--json", action="store_true", help='print {"frames", "objects", "out"} (and "rosbag" with --rosbag, '
+                                                        '"drift" and "corrections" with --drift)')
     sy.set_defaults(func=_cmd_synth)
 
     so = sub.add_parser("source", help="replay a sequence as frames over Zenoh, or with --ros2 take a live robot's ROS 2 topics")
@@ -643,6 +672,7 @@ def build_parser() -> argparse.ArgumentParser:
     so.add_argument("--rate", type=float, metavar="HZ", help="live-mode rate")
     so.add_argument("--stride", type=int, metavar="N")
     so.add_argument("--max-frames", type=int, metavar="N")
+    so.add_argument("--corrections", type=Path, metavar="FILE", help="pose corrections (JSON lines) to send on poses/correction as the replay passes their frames")
     so.add_argument("--connect", action="append", metavar="ENDPOINT", help="router endpoint(s)")
     so.add_argument("--wait", type=float, default=30.0, metavar="S", help="lossless: wait this long for a subscriber")
     so.add_argument("--status-file", type=Path, metavar="FILE", help="write the last ServiceStatus report here as JSON at stop")
@@ -657,7 +687,9 @@ def build_parser() -> argparse.ArgumentParser:
     mp.add_argument("--save-tracks", action="store_true", help="write per-frame track maps for eval tracking")
     mp.add_argument("--stride", type=int, metavar="N")
     mp.add_argument("--max-frames", type=int, metavar="N")
-    mp.add_argument("--json", action="store_true", help='print {"frames", "seconds", "hz", "peak_rss_mb", "segments"}')
+    mp.add_argument("--corrections", type=Path, metavar="FILE",
+                    help="pose corrections (JSON lines, e.g. a drifting synth's corrections.jsonl), each applied when the map reaches its frame")
+    mp.add_argument("--json", action="store_true", help='print {"frames", "seconds", "hz", "peak_rss_mb", "segments", "corrections"}')
     mp.set_defaults(func=_cmd_map)
 
     ev = sub.add_parser("eval", help="evaluate maps, tracks and masks against ground truth")

@@ -67,8 +67,12 @@ def run_map(
     stride: int | None = None,
     max_frames: int | None = None,
     progress: bool = True,
+    corrections: Path | None = None,
 ) -> dict[str, Any]:
-    """Map a recorded sequence; writes the map folder and returns the ``run.json`` summary."""
+    """Map a recorded sequence; writes the map folder and returns the ``run.json`` summary.
+    ``corrections``: a JSON-lines file of pose corrections, each applied once the map has
+    fused the frame it is valid up to (or its ``apply_after_frame``); default the config's
+    ``source.corrections``."""
     from services.fusion.core import FusionCore
     from services.fusion.session import FusionSession
     from services.keyframe_vl.build import build_keyframe_vl
@@ -88,6 +92,7 @@ def run_map(
     # dropping are for a camera's stream, not for a batch map).
     replay = cfg.source.model_copy(update={
         "mode": "lossless", "loops": 1, "stride": stride or cfg.source.stride, "max_frames": max_frames or cfg.source.max_frames,
+        "corrections": str(corrections) if corrections is not None else cfg.source.corrections,
     })  # fmt: skip
     pipeline_cfg = cfg.model_copy(update={"source": replay})
     out.mkdir(parents=True, exist_ok=True)

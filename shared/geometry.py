@@ -159,5 +159,11 @@ def pose_row(T: Pose) -> Annotated[np.ndarray, "(7,) x y z qx qy qz qw"]:
     return np.array([*np.asarray(T, np.float64)[:3, 3], q[1], q[2], q[3], q[0]])
 
 
+def pose_from_row(row: Annotated[np.ndarray, "(7,) x y z qx qy qz qw"]) -> Pose:
+    """The inverse of :func:`pose_row`."""
+    r = np.asarray(row, np.float64).reshape(7)
+    return pose_from_quat(r[:3], np.array([r[6], r[3], r[4], r[5]]))
+
+
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 """Right-multiply a camera-to-world pose in OpenGL axes (y up, z back) to get OpenCV axes."""

@@ -63,6 +63,10 @@ class Topics:
         return f"{self.root}/tracks/end"
 
     @property
+    def poses_correction(self) -> str:
+        return f"{self.root}/poses/correction"
+
+    @property
     def graph_delta(self) -> str:
         return f"{self.root}/graph/delta"
 

@@ -9,11 +9,15 @@ and rooms, and returns the resulting :class:`GraphDelta`.
 from __future__ import annotations
 
 import logging
+import time
+from dataclasses import dataclass
 from typing import Annotated, Any
 
 import numpy as np
 
 from services.fusion.hypotheses import confidence
+from services.fusion.move import warm_up
+from services.fusion.poses import CorrectionError, PoseBook
 from services.fusion.roomnames import (
     VIEW_SAMPLE_STRIDE,
     RoomVocabulary,
@@ -22,20 +26,55 @@ from services.fusion.roomnames import (
 )
 from services.fusion.rooms import Hierarchy, HierarchyBuilder
 from services.fusion.segments import SegmentLayer
+from services.fusion.surface import SurfaceSample
 from services.fusion.tsdf import HypothesisTSDF
 from services.fusion.types import HypothesisMesh, TrackState
 from shared.config.fusion import FusionConfig
-from shared.geometry import backproject, pose_row
+from shared.geometry import backproject, pose_from_row, pose_row
 from shared.graph.roomgrid import RoomGrid
 from shared.graph.scene import SceneGraph
 from shared.messages.frames import TrackedFrame
 from shared.messages.graph import GraphDelta, GraphSnapshot, MeshChunk, RoomNode, SegmentNode
 from shared.messages.keyframes import TrackFeatures
+from shared.messages.poses import PoseCorrection
 
 log = logging.getLogger(__name__)
 
 SURFACE_CELL_M = 0.05
 """Resolution of the whole-map surface sample that places and rooms are built from."""
+
+
+@dataclass
+class CorrectionCounters:
+    """Pose corrections the core took (the fusion service's ``corrections`` status figure)."""
+
+    applied: int = 0
+    unchanged: int = 0
+    """Corrections that moved nothing: the newest sent again, or the same poses once more."""
+    refused: int = 0
+    last_id: int = -1
+    seconds_move: float = 0.0
+    """Time the newest correction took to move the map (TSDF, segments, surface, views)."""
+    seconds_update: float = 0.0
+    """Time of the graph update after it (mesh, segments and re-identification, places, rooms)."""
+
+    def as_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+@dataclass
+class CorrectionOutcome:
+    """What :meth:`FusionCore.apply_correction` did."""
+
+    correction_id: int
+    status: str
+    """``applied`` or ``unchanged`` (a refused correction raises)."""
+    delta: GraphDelta | None
+    """The graph update after the move (None when nothing moved)."""
+    frames_moved: int
+    max_shift_m: float
+    seconds_move: float
+    seconds_update: float
 
 
 class FusionCore:
@@ -56,11 +95,18 @@ class FusionCore:
         self.views: dict[int, np.ndarray] = {}
         """Keyframe index -> its whole-image embedding (``TrackFeatures.view``), for room features."""
         self.view_points: dict[int, np.ndarray] = {}
-        """Keyframe index -> (N, 2) float32 world xy of a sparse sample of its depth: what the
-        view shows, to give it to a room."""
+        """Keyframe index -> (N, 3) float32 world points of a sparse sample of its depth: what
+        the view shows, to give it to a room (by xy)."""
         self.room_vocabulary: RoomVocabulary | None = None
         """The room labels' text embeddings; set by the session once ``vl/embed`` answers."""
-        self.surface: dict[tuple[int, int, int], np.ndarray] = {}
+        self.surface = SurfaceSample(SURFACE_CELL_M)
+        self.book = PoseBook()
+        """Raw and corrected pose of every fused frame (:mod:`services.fusion.poses`)."""
+        self.tsdf.epoch_motion = self.book.epoch_motion
+        warm_up()  # the voxel-moving kernels, so a first correction is not slower than the next
+        self._moved: set[int] = set()
+        """Segments a correction moved, reported changed by the next update."""
+        self.corrections = CorrectionCounters()
         self.frames = 0
         self.updates = 0
         self.last_frame_index = -1
@@ -78,17 +124,19 @@ class FusionCore:
         # confident of its track; ``min_label_confidence: 0`` fuses every pixel as the paper does.
         if tf.confidence is not None and tsdf.min_label_confidence > 0:
             ids = np.where(tf.confidence >= round(255 * tsdf.min_label_confidence), ids, -1)
-        stats = self.tsdf.integrate(fr.depth_m(), fr.rgb, fr.intrinsics, fr.T_world_cam, ids, gamma)
+        # the pose the frame came with, as the newest pose correction places it
+        T = self.book.add(int(fr.frame_index), fr.T_world_cam)
+        stats = self.tsdf.integrate(fr.depth_m(), fr.rgb, fr.intrinsics, T, ids, gamma, frame_index=int(fr.frame_index))
         for tid, w in stats.displaced.items():
             self._track(tid).displaced_weight += float(w)
         for o in tf.tracks:
             self._track(o.track_id)
         if tf.keyframe:
-            self.view_points[int(fr.frame_index)] = _seen_xy(fr)
-        position = fr.T_world_cam[:3, 3].copy()
+            self.view_points[int(fr.frame_index)] = _seen_points(fr, T)
+        position = T[:3, 3].copy()
         self.tsdf.update_window(position)
         self.trajectory.append(position)
-        self.poses.append(pose_row(fr.T_world_cam))
+        self.poses.append(pose_row(T))
         self.pose_frames.append(int(fr.frame_index))
         self.frames += 1
         self.last_frame_index = fr.frame_index
@@ -128,7 +176,7 @@ class FusionCore:
         self.mesh = mesh
         center = self.trajectory[-1] if self.trajectory else np.zeros(3)
         changes = self.segments.update(mesh, self.tracks, window=(center, self.cfg.tsdf.active_window_m))
-        self._add_surface(mesh.vertices)
+        self.surface.add(mesh.vertices, mesh.vertex_anchors())
         places = rooms = None
         points = self.surface_points()
         if len(points) and len(self.trajectory):
@@ -139,7 +187,9 @@ class FusionCore:
             except ValueError as exc:
                 # Too little of the floor is mapped yet to find free space; keep the last layers.
                 log.debug("places and rooms not rebuilt: %s", exc)
-        ids = sorted(set(changes.added) | set(changes.changed))
+        moved = {s for s in self._moved if s in self.segments.segments}
+        self._moved = set()
+        ids = sorted(set(changes.added) | set(changes.changed) | moved)
         self.updates += 1
         with_mesh = self.updates % self.cfg.mesh_delta_every_n_updates == 0
         return self.graph.apply_update(
@@ -241,20 +291,60 @@ class FusionCore:
             names=[names.get(int(i), "") for i in ids],
         )
 
-    def _add_surface(self, vertices: Annotated[np.ndarray, "(V, 3) float32"]) -> None:
-        """Keep one point per 5 cm cell of everything ever meshed: places and rooms must cover
-        the whole map, not only the active window."""
-        if len(vertices) == 0:
-            return
-        cells = np.floor(vertices / SURFACE_CELL_M).astype(np.int64)
-        _, first = np.unique(cells, axis=0, return_index=True)
-        for k in first:
-            self.surface.setdefault(tuple(cells[k]), vertices[k])
+    # ------------------------------------------------------------------ pose corrections
+
+    def apply_correction(self, c: PoseCorrection) -> CorrectionOutcome:
+        """Move the map to where correction ``c`` puts the frames it was fused from.
+
+        The estimates of every fused frame are recomputed from the raw poses and ``c`` alone
+        (:class:`~services.fusion.poses.PoseBook`); each piece of the map moves rigidly with
+        the frame it was last fused from: TSDF voxels (``HypothesisTSDF.move``), segment
+        positions, the whole-map surface sample, keyframe views, the trajectory. Then one
+        graph update rebuilds the mesh, segments (re-identification on the corrected
+        geometry), places and rooms, and its delta reports every segment that moved, under
+        its own id. Raises :class:`~services.fusion.poses.CorrectionError`, with nothing
+        changed, for a correction that is older than the newest applied, names frames the map
+        has not fused, or none it has. The same correction again moves nothing."""
+        t0 = time.perf_counter()
+        try:
+            motion = self.book.correct(c)
+        except CorrectionError:
+            self.corrections.refused += 1
+            raise
+        if len(motion) == 0:
+            self.corrections.unchanged += 1
+            return CorrectionOutcome(c.correction_id, "unchanged", None, 0, 0.0, 0.0, 0.0)
+        tsdf = self.tsdf.move(motion, self.book.epoch)
+        self._moved |= set(self.segments.move(motion))
+        self.surface.move(motion)
+        if self.view_points:
+            frames = sorted(self.view_points)
+            sizes = [len(self.view_points[f]) for f in frames]
+            pts, _ = motion.apply(np.concatenate([self.view_points[f] for f in frames]), np.repeat(frames, sizes))
+            self.view_points = dict(zip(frames, np.split(pts, np.cumsum(sizes)[:-1]), strict=True))
+        est = self.book.est
+        self.trajectory = [T[:3, 3].copy() for T in est]
+        self.poses = [pose_row(T) for T in est]
+        t_move = time.perf_counter() - t0
+        moved = len(self._moved)
+        t1 = time.perf_counter()
+        delta = self.update() if self.frames else None
+        t_update = time.perf_counter() - t1
+        self.corrections.applied += 1
+        self.corrections.last_id = c.correction_id
+        self.corrections.seconds_move = round(t_move, 4)
+        self.corrections.seconds_update = round(t_update, 4)
+        log.info(
+            "correction %d (frames up to %d): %d frames moved, up to %.3f m; %d segments, %d voxels moved (%d gaps filled); "
+            "%.3f s to move, %.3f s to update the graph",
+            c.correction_id, c.frame_index, len(motion), motion.max_shift_m, moved, tsdf.voxels_moved, tsdf.gaps_filled, t_move, t_update,
+        )  # fmt: skip
+        return CorrectionOutcome(c.correction_id, "applied", delta, len(motion), motion.max_shift_m, t_move, t_update)
 
     def surface_points(self) -> Annotated[np.ndarray, "(N, 3) float32"]:
-        if not self.surface:
-            return np.zeros((0, 3), np.float32)
-        return np.stack(list(self.surface.values())).astype(np.float32)
+        """One point per 5 cm cell of everything ever meshed: places and rooms must cover the
+        whole map, not only the active window."""
+        return self.surface.points
 
     # ------------------------------------------------------------------ persistence
 
@@ -279,12 +369,14 @@ class FusionCore:
             "poses": np.stack(self.poses) if self.poses else np.zeros((0, 7)),
             "pose_frames": np.asarray(self.pose_frames, np.int64),
             "surface": self.surface_points(),
+            "surface_anchors": self.surface.anchors.copy(),
+            "pose_book": self.book.state_dict(),
             "views": {
                 "frames": np.asarray(sorted(self.views), np.int64),
                 "features": np.stack([self.views[f] for f in sorted(self.views)]) if self.views else np.zeros((0, 0), np.float32),
                 "seen_frames": np.asarray(sorted(self.view_points), np.int64),
                 "seen_counts": np.asarray([len(self.view_points[f]) for f in sorted(self.view_points)], np.int64),
-                "seen_xy": np.concatenate([self.view_points[f] for f in sorted(self.view_points)]) if self.view_points else np.zeros((0, 2), np.float32),
+                "seen_xyz": np.concatenate([self.view_points[f] for f in sorted(self.view_points)]) if self.view_points else np.zeros((0, 3), np.float32),
             },
             "counters": np.asarray([self.frames, self.updates, self.last_frame_index], np.int64),
         }
@@ -312,8 +404,20 @@ class FusionCore:
             poses = np.column_stack([np.stack(self.trajectory), np.tile([0.0, 0.0, 0.0, 1.0], (len(self.trajectory), 1))]) if self.trajectory else np.zeros((0, 7))
             frames = np.full(len(poses), -1, np.int64)
         self.poses, self.pose_frames = list(poses), frames.tolist()
-        self.surface = {}
-        self._add_surface(np.asarray(state["surface"], np.float32).reshape(-1, 3))
+        if "pose_book" in state:
+            self.book = PoseBook()
+            self.book.load_state_dict(state["pose_book"])
+        else:
+            # saved before pose corrections: the poses fused with are the raw ones
+            valid = len(frames) and frames.min() >= 0 and np.all(np.diff(frames) > 0)
+            index = frames if valid else np.arange(len(poses)) - len(poses)
+            self.book = PoseBook.from_raw(index.tolist(), [pose_from_row(p) for p in poses])
+        self.tsdf.epoch_motion = self.book.epoch_motion
+        self._moved = set()
+        self.surface.clear()
+        surface = np.asarray(state["surface"], np.float32).reshape(-1, 3)
+        anchors = np.asarray(state.get("surface_anchors", np.full(len(surface), -1)), np.int32).reshape(-1)
+        self.surface.add(surface, anchors if len(anchors) == len(surface) else np.full(len(surface), -1, np.int32))
         # Maps saved before keyframe views were kept resume without them.
         views = state.get("views") or {}
         vf = np.asarray(views.get("frames", np.zeros(0)), np.int64).reshape(-1)
@@ -321,7 +425,11 @@ class FusionCore:
         self.views = {int(f): feats[k].copy() for k, f in enumerate(vf.tolist())} if len(vf) == len(feats) else {}
         sf = np.asarray(views.get("seen_frames", np.zeros(0)), np.int64).reshape(-1)
         counts = np.asarray(views.get("seen_counts", np.zeros(0)), np.int64).reshape(-1)
-        xy = np.asarray(views.get("seen_xy", np.zeros((0, 2))), np.float32).reshape(-1, 2)
+        if "seen_xyz" in views:
+            xy = np.asarray(views["seen_xyz"], np.float32).reshape(-1, 3)
+        else:  # saved before corrections kept the height
+            xy = np.asarray(views.get("seen_xy", np.zeros((0, 2))), np.float32).reshape(-1, 2)
+            xy = np.column_stack([xy, np.zeros(len(xy), np.float32)])
         self.view_points = {}
         if len(sf) == len(counts) and counts.sum() == len(xy):
             for f, part in zip(sf.tolist(), np.split(xy, np.cumsum(counts)[:-1]) if len(counts) else [], strict=True):
@@ -332,13 +440,13 @@ class FusionCore:
         self.mesh = None
 
 
-def _seen_xy(fr) -> Annotated[np.ndarray, "(N, 2) float32 world xy"]:
-    """World xy of every ``VIEW_SAMPLE_STRIDE``-th pixel of the frame with depth."""
+def _seen_points(fr, T: Annotated[np.ndarray, "(4, 4) world-from-camera"]) -> Annotated[np.ndarray, "(N, 3) float32 world"]:
+    """World points of every ``VIEW_SAMPLE_STRIDE``-th pixel of the frame with depth."""
     depth = fr.depth_m()[::VIEW_SAMPLE_STRIDE, ::VIEW_SAMPLE_STRIDE]
     pts = backproject(fr.intrinsics, fr.depth_m())[::VIEW_SAMPLE_STRIDE, ::VIEW_SAMPLE_STRIDE].reshape(-1, 3)
     pts = pts[(depth.reshape(-1) > 0) & np.isfinite(depth.reshape(-1))]
-    T = np.asarray(fr.T_world_cam, np.float64)
-    return (pts @ T[:3, :3].T + T[:3, 3])[:, :2].astype(np.float32)
+    T = np.asarray(T, np.float64)
+    return (pts @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
 
 
 def _segments_tree(state: dict[str, Any]) -> dict[str, Any]:

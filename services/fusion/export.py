@@ -41,6 +41,7 @@ def run_summary(cfg: TrackGraphConfig, fusion, snapshot, *, frames: int, seconds
         "places": len(snapshot.places),
         "rooms": len(snapshot.rooms),
         "sequence": None if sequence is None else str(sequence),
+        "corrections": fusion.corrections.as_dict() if hasattr(fusion, "corrections") else None,
         "backends": {
             "tracker": cfg.tracker.mode,
             "dense_features": cfg.tracker.features.backend,

@@ -48,6 +48,7 @@ from shared.config.transport import CodecConfig
 from shared.io import fsync_dir
 from shared.messages.frames import EndOfSequence, TrackedFrame
 from shared.messages.keyframes import TrackFeatures
+from shared.messages.poses import PoseCorrection
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +62,7 @@ KINDS: dict[str, type[BaseModel]] = {
     "frame": TrackedFrame,
     "features": TrackFeatures,
     "end": EndOfSequence,
+    "correction": PoseCorrection,
 }
 FIRST = "000000"
 """Name of the journal of a map started from nothing."""
@@ -77,7 +79,7 @@ class JournalError(RuntimeError):
 
 @dataclass
 class Record:
-    """One accepted message: ``kind`` is ``frame``, ``features`` or ``end``."""
+    """One accepted message: ``kind`` is ``frame``, ``features``, ``end`` or ``correction``."""
 
     kind: str
     body: BaseModel

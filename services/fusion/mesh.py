@@ -141,9 +141,12 @@ def extract_hypothesis_mesh(
         ids.append(gather_rows(vbg, "hyp_id", flat, 0).astype(np.int32) - 1)
         weights.append(gather_rows(vbg, "hyp_w", flat, 0.0).astype(np.float64) * frac[:, None])
     hyp_ids, hyp_weights = merge_hypotheses(ids[0], weights[0], ids[1], weights[1], k)
+    # the anchor frame of the nearer end (both are usually fused by the same frames)
+    nearer = np.where((share[0] >= share[1])[:, None], ends[0], ends[1])
+    anchors = gather_rows(vbg, "anchor", voxel_flat_index(vbg, nearer, voxel_size, res), -1)[:, 0].astype(np.int32)
     return HypothesisMesh(
         vertices=np.ascontiguousarray(pos), colors=np.ascontiguousarray(col), faces=faces,
-        hyp_ids=hyp_ids, hyp_weights=hyp_weights,
+        hyp_ids=hyp_ids, hyp_weights=hyp_weights, anchors=anchors,
     )  # fmt: skip
 
 

@@ -55,6 +55,7 @@ from services.fusion.gallery import (
     gallery_state,
     sync_gallery,
 )
+from services.fusion.poses import Motion
 from services.fusion.reid import ReidMatch, best_match, unit, within
 from services.fusion.types import HypothesisMesh, TrackState
 from shared.config.fusion import ReidConfig, SegmentsConfig
@@ -91,6 +92,11 @@ class Segment:
     """Every vertex connected to the segment: its latest-mesh vertices (``vertex_ids``) and those
     kept from earlier meshes that the latest mesh no longer covers (they left the window).
     Historical segments keep theirs: it is what re-identification compares a revisit against."""
+    anchors: Annotated[np.ndarray, "(P,) int32 frame index per position, -1 = unknown"] = field(
+        default_factory=_no_vertices
+    )
+    """The frame each position was last fused from: a pose correction moves the position with
+    that frame's correction (:meth:`SegmentLayer.move`)."""
     vertex_ids: Annotated[np.ndarray, "(n,) int32 indices into the latest mesh"] = field(
         default_factory=_no_vertices
     )
@@ -108,6 +114,11 @@ class Segment:
     bbox_min: Annotated[np.ndarray, "(3,) float64"] = field(default_factory=lambda: np.zeros(3))
     bbox_max: Annotated[np.ndarray, "(3,) float64"] = field(default_factory=lambda: np.zeros(3))
     centroid: Annotated[np.ndarray, "(3,) float64"] = field(default_factory=lambda: np.zeros(3))
+
+    def __post_init__(self) -> None:
+        if len(self.anchors) != len(self.positions):
+            # built from positions alone (no grid behind them): frames unknown, never moved
+            self.anchors = np.full(len(self.positions), -1, np.int32)
 
     @property
     def num_vertices(self) -> int:
@@ -180,6 +191,7 @@ class Segment:
             "tracks": sorted(self.tracks),
             "dino": self.dino.copy(),
             "positions": self.positions.copy(),
+            "anchors": self.anchors.copy(),
             "vertex_ids": self.vertex_ids.copy(),
             "active": self.active,
             "gallery": gallery_state(self.gallery),
@@ -198,6 +210,8 @@ class Segment:
             tracks={int(t) for t in s["tracks"]},
             dino=np.array(s["dino"], np.float32),
             positions=np.array(s["positions"], np.float32).reshape(-1, 3),
+            # saved before pose corrections: every position's frame unknown
+            anchors=np.array(s["anchors"], np.int32).reshape(-1) if "anchors" in s else np.full(len(np.asarray(s["positions"]).reshape(-1, 3)), -1, np.int32),
             vertex_ids=np.array(s["vertex_ids"], np.int32),
             active=bool(s["active"]),
             gallery=gallery_from_state(s["gallery"]),
@@ -523,6 +537,7 @@ class SegmentLayer:
             for k, sid in enumerate(seg_ids)
             if bounds_v[k + 1] > bounds_v[k]
         }
+        anchors = mesh.vertex_anchors()
         # One coverage query for all stored geometry of the segments seen on this mesh.
         seen = sorted(current)
         stored = [self.segments[s].positions for s in seen]
@@ -530,9 +545,10 @@ class SegmentLayer:
         bounds = np.cumsum([0] + [len(p) for p in stored])
         for k, sid in enumerate(seen):
             seg = self.segments[sid]
-            kept = seg.positions[keep_all[bounds[k] : bounds[k + 1]]]
+            keep = keep_all[bounds[k] : bounds[k + 1]]
             before = seg.summary()
-            seg.positions = np.concatenate([kept, mesh.vertices[current[sid]].astype(np.float32)])
+            seg.positions = np.concatenate([seg.positions[keep], mesh.vertices[current[sid]].astype(np.float32)])
+            seg.anchors = np.concatenate([seg.anchors[keep], anchors[current[sid]]]).astype(np.int32)
             seg.vertex_ids = current[sid]
             seg.active = True
             seg.refresh_bounds()
@@ -617,7 +633,8 @@ class SegmentLayer:
     def _merge(self, target: int, queries: list[int], cover: _MeshCover) -> None:
         """Move the queries' tracks, features and vertices into historical segment ``target``."""
         h = self.segments[target]
-        parts = [h.positions[cover.keep(h.positions)]]
+        keep = cover.keep(h.positions)
+        parts, anchors = [h.positions[keep]], [h.anchors[keep]]
         vids = [h.vertex_ids]
         for q in queries:
             seg = self.segments.pop(q)
@@ -630,14 +647,39 @@ class SegmentLayer:
             for t in seg.tracks:
                 self._track_segment[t] = target
             parts.append(seg.positions)
+            anchors.append(seg.anchors)
             vids.append(seg.vertex_ids)
             self._vertex_segments[self._vertex_segments == q] = target
         h.positions = np.concatenate(parts)
+        h.anchors = np.concatenate(anchors).astype(np.int32)
         h.vertex_ids = np.sort(np.concatenate(vids)).astype(np.int32)
         h.active = True
         h.refresh_bounds()
         h.refresh_dino()
         self._hist_trees.pop(target, None)
+
+    # -- pose corrections ---------------------------------------------------------------------
+
+    def move(self, motion: Motion) -> list[int]:
+        """Move every stored position with its anchor frame's correction; returns the ids of
+        the segments that moved (their bounds and centroid are refreshed). A segment keeps its
+        id, tracks and gallery: only where it is changes. Historical k-d trees are rebuilt on
+        their next use."""
+        segs = [s for _, s in sorted(self.segments.items()) if s.num_vertices]
+        if not segs:
+            return []
+        # one lookup for every position of the map
+        sizes = [s.num_vertices for s in segs]
+        pos, hit = motion.apply(np.concatenate([s.positions for s in segs]), np.concatenate([s.anchors for s in segs]))
+        bounds = np.cumsum([0, *sizes])
+        moved = []
+        for k, seg in enumerate(segs):
+            if hit[bounds[k] : bounds[k + 1]].any():
+                seg.positions = pos[bounds[k] : bounds[k + 1]].astype(np.float32)
+                seg.refresh_bounds()
+                self._hist_trees.pop(seg.id, None)
+                moved.append(seg.id)
+        return moved
 
     # -- save / resume ------------------------------------------------------------------------
 

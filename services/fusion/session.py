@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from services.fusion.journal import FIRST, Journal, JournalError, Record
+from services.fusion.poses import CorrectionError
 from services.fusion.reorder import InOrder
 from shared.config.root import TrackGraphConfig
 from shared.config.transport import CodecConfig
@@ -39,6 +40,7 @@ from shared.graph.store import MapStore, StoreError
 from shared.messages.frames import EndOfSequence, FrameAck, TrackedFrame
 from shared.messages.graph import GraphDelta, GraphSnapshot, MeshChunk, SnapshotRequest
 from shared.messages.keyframes import TrackFeatures
+from shared.messages.poses import PoseCorrection, parse_correction
 from shared.runtime.bus import Bus
 from shared.runtime.session import LATER, Inbox, Session
 
@@ -105,6 +107,11 @@ class FusionSession(Session):
         self.features_duplicate = 0
         self.in_order = InOrder(cfg.fusion.reorder_wait_s, cfg.fusion.reorder_capacity)
         """The tracker's frames and feature messages put back in the order it sent them."""
+        self.pending_corrections: list[PoseCorrection] = []
+        """Pose corrections received and not applied yet (waiting for their
+        ``apply_after_frame``), in arrival order."""
+        self.correction_error: str | None = None
+        """Why the newest refused correction was refused."""
         self.replayed: dict[str, int] = {}
         """Journal records replayed at resume, per kind."""
         self.journal_torn = 0
@@ -143,6 +150,7 @@ class FusionSession(Session):
         self.subscribe("tracks_frame", TrackedFrame, self._on_frame, capacity=16, queued=True)
         self.subscribe("tracks_features", TrackFeatures, self._on_features, capacity=64, queued=True)
         self.subscribe("tracks_end", EndOfSequence, self._on_end, capacity=4, queued=True)
+        self.subscribe("poses_correction", PoseCorrection, self._on_correction, capacity=16, queued=True)
         if self.journal is not None:
             if resume:
                 self._replay(base)
@@ -181,6 +189,8 @@ class FusionSession(Session):
             self._on_frame(rec.body)
         elif rec.kind == "features":
             self._on_features(rec.body)
+        elif rec.kind == "correction":
+            self._on_correction(rec.body)
         else:
             self._on_end(rec.body)
 
@@ -197,7 +207,10 @@ class FusionSession(Session):
             log.error("%s", exc)
 
     def _session_state(self) -> dict:
-        return {"features": np.asarray([self.features_in, self.features_next], np.int64), "order": np.asarray(self.in_order.state(), np.int64)}
+        # corrections still waiting for their frame: the journal is cut at this snapshot
+        pending = "\n".join(c.to_json() for c in self.pending_corrections).encode()
+        return {"features": np.asarray([self.features_in, self.features_next], np.int64), "order": np.asarray(self.in_order.state(), np.int64),
+                "pending_corrections": np.frombuffer(pending, np.uint8).copy()}  # fmt: skip
 
     def _load_session_state(self, state: dict | None) -> None:
         if state is None:  # a snapshot from before the journal
@@ -205,6 +218,8 @@ class FusionSession(Session):
         self.features_in, self.features_next = (int(x) for x in np.asarray(state["features"]))
         if "order" in state:
             self.in_order.load(np.asarray(state["order"]).tolist())
+        text = bytes(np.asarray(state.get("pending_corrections", np.zeros(0, np.uint8)), np.uint8)).decode()
+        self.pending_corrections = [parse_correction(json.loads(line)) for line in text.splitlines() if line.strip()]
 
     def _ack(self, frame_index: int, now: float) -> None:
         if self._replaying:
@@ -268,6 +283,7 @@ class FusionSession(Session):
                 self._last_frame_at = self.clock()
                 if delta is not None:
                     self.deltas.put(delta)
+                self._apply_corrections()
                 self.book.work_done(max(self._last_frame_at - t0, 0.0))
                 if not self._replaying:
                     self._maybe_save(self._last_frame_at)
@@ -310,6 +326,39 @@ class FusionSession(Session):
         self._check_end(self._end_at)
         self._refresh()
 
+    def _on_correction(self, c: PoseCorrection) -> object:
+        """Held until fusion has fused its ``apply_after_frame`` (at once without one), then
+        applied: the map moves and a delta goes out. Journaled on arrival, so a resumed
+        fusion holds and applies it at the same frame."""
+        self._journal("correction", c)
+        self.pending_corrections.append(c)
+        self._apply_corrections()
+        self._refresh()
+        return LATER  # counted when applied or refused
+
+    def _apply_corrections(self, final: bool = False) -> None:
+        """Every pending correction that is due (``final``: all of them, at the map's end)."""
+        last = self.core.last_frame_index
+        due = [c for c in self.pending_corrections if final or c.apply_after_frame is None or last >= c.apply_after_frame]
+        for c in due:
+            self.pending_corrections.remove(c)
+            try:
+                out = self.core.apply_correction(c)
+            except CorrectionError as exc:
+                self.correction_error = f"correction {c.correction_id} refused: {exc}"
+                self.book.count("poses_correction", "rejected")
+                self.book.error()
+                log.error("fusion: %s", self.correction_error)
+                continue
+            except Exception:  # noqa: BLE001 - one bad correction must not stop the map
+                self.book.count("poses_correction", "rejected")
+                self.book.error()
+                log.exception("fusion failed on PoseCorrection %d", c.correction_id)
+                continue
+            self.book.count("poses_correction", "processed")
+            if out.delta is not None:
+                self.deltas.put(out.delta)
+
     def _on_snapshot(self, req: SnapshotRequest) -> GraphSnapshot:
         # under the lock: a snapshot never sees a half-applied frame
         with self.lock:
@@ -345,6 +394,7 @@ class FusionSession(Session):
         """The final graph update out; with a store the whole map saved and exported."""
         if self.finished.is_set():
             return
+        self._apply_corrections(final=True)
         self.deltas.put(self.core.finish())
         if self.store is not None:
             self.save(export=True)
@@ -491,6 +541,8 @@ class FusionSession(Session):
         book.figure("graph_seq", self.core.graph.graph_seq)
         book.figure("finished", self.finished.is_set())
         book.figure("room_labels", self._has_room_labels())
+        if hasattr(self.core, "corrections"):
+            book.figure("corrections", {**self.core.corrections.as_dict(), "pending": len(self.pending_corrections), "last_error": self.correction_error})
         if self.journal is not None:
             book.figure("journal", {"records": self.journal.appended, "bytes": self.journal.bytes, "torn_at_resume": self.journal_torn})
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Annotated, Any
 
@@ -46,6 +47,8 @@ from services.fusion.mesh import (
     to_host,
     voxel_flat_index,
 )
+from services.fusion.move import move_blocks, moving_voxels
+from services.fusion.poses import Motion
 from services.fusion.types import HypothesisMesh
 from services.fusion.window import BlockArchive, block_centres, pack_keys
 from shared.config.fusion import TSDFConfig
@@ -58,7 +61,9 @@ MESH_WEIGHT_THRESHOLD = 1.0
 """Marching cubes uses voxels with TSDF weight above this: surfaces seen in at least two frames,
 which drops single-frame depth noise."""
 
-STATE_VERSION = 1
+STATE_VERSION = 2
+"""2: the ``anchor`` and ``offset`` attributes (version 1 states load with every anchor unknown
+and no offset)."""
 
 
 @dataclass
@@ -82,6 +87,21 @@ class IntegrateStats:
     """Track id -> weight it lost to slot replacement in this frame (III-C, for the segments)."""
     seconds_tsdf: float = 0.0
     seconds_hypotheses: float = 0.0
+
+
+@dataclass
+class MoveStats:
+    """What one :meth:`HypothesisTSDF.move` did."""
+
+    blocks_read: int = 0
+    """Active blocks rewritten: those holding a moving voxel and those moved voxels landed in."""
+    blocks_written: int = 0
+    voxels_moved: int = 0
+    gaps_filled: int = 0
+    """Empty voxels between two filled neighbours after the move, filled from them."""
+    archived_moved: int = 0
+    """Archived blocks moved now (only with ``restore_archived``; otherwise when read)."""
+    seconds: float = 0.0
 
 
 @dataclass
@@ -155,18 +175,24 @@ class HypothesisTSDF:
         self.K = cfg.hypotheses
         self._layout = {
             "tsdf": (np.float32, 1), "weight": (np.float32, 1), "color": (np.float32, 3),
-            "hyp_id": (np.int32, self.K), "hyp_w": (np.float32, self.K),
+            "hyp_id": (np.int32, self.K), "hyp_w": (np.float32, self.K), "anchor": (np.int32, 1),
+            "offset": (np.int8, 3),
         }  # fmt: skip
         self.archive = BlockArchive(self._layout, self.res)
         self.vbg = self._new_grid(cfg.initial_blocks)
         self.frames = 0
+        self.epoch = 0
+        """Pose corrections applied so far: blocks archived before the newest were placed by
+        older estimates, and are moved when they are read (:meth:`extract_archived_mesh`)."""
+        self.epoch_motion: Callable[[int], Motion] | None = None
+        """From the estimates of an epoch to the current ones (set by the fusion core)."""
 
     # ---------------------------------------------------------------------------------------
     # grid plumbing
 
     def _new_grid(self, blocks: int) -> Any:
         o3c = self._o3c
-        dtypes = {np.float32: o3c.float32, np.int32: o3c.int32}
+        dtypes = {np.float32: o3c.float32, np.int32: o3c.int32, np.int8: o3c.int8}
         names = tuple(self._layout)
         return self._o3d.t.geometry.VoxelBlockGrid(
             attr_names=names,
@@ -250,10 +276,13 @@ class HypothesisTSDF:
         track_ids: Annotated[np.ndarray, "(H, W) int32 source track per pixel, -1 = none"]
         | None = None,
         gamma: dict[int, float] | None = None,
+        frame_index: int | None = None,
     ) -> IntegrateStats:
         """Fuse one frame into the TSDF, then add gamma[tau] (eq. 6) to the hypotheses of the
         voxels seen inside the mask of each track tau (eq. 5). Every track id in ``track_ids``
-        needs a ``gamma`` entry; a missing one raises ValueError before anything changes."""
+        needs a ``gamma`` entry; a missing one raises ValueError before anything changes.
+        The frame's blocks are anchored to ``frame_index`` (default: the count of frames
+        integrated so far): a pose correction moves them with that frame."""
         cfg = self.cfg
         h, w = depth_m.shape[:2]
         if (w, h) != (K.width, K.height) or depth_m.ndim != 2:
@@ -304,6 +333,7 @@ class HypothesisTSDF:
             )
 
         t0 = time.perf_counter()
+        before = self._weights_of(bc)
         self.vbg.integrate(bc, dimg, cimg, intr, extr, 1.0, cfg.depth_max, trunc)
         t_tsdf += time.perf_counter() - t0
 
@@ -312,9 +342,9 @@ class HypothesisTSDF:
         if not bool(found.cpu().numpy().all()):
             raise RuntimeError("integrate left frame blocks unallocated")
         hyp_id, hyp_w = self._hyp_views()
-        vote = self._vote.slot_pass(
-            passed, gid, gval, bufs.cpu().numpy().astype(np.int64), self.res, hyp_id, hyp_w
-        )
+        host_bufs = bufs.cpu().numpy().astype(np.int64)
+        vote = self._vote.slot_pass(passed, gid, gval, host_bufs, self.res, hyp_id, hyp_w)
+        self._anchor(host_bufs, before, self.frames if frame_index is None else int(frame_index))
         t_hyp += time.perf_counter() - t0
         self.frames += 1
         stats = IntegrateStats(
@@ -331,6 +361,30 @@ class HypothesisTSDF:
                 vote.overflow,
             )
         return stats
+
+    def _weights_of(self, bc: Any) -> Annotated[np.ndarray, "(B, res^3) float32, 0 in blocks not yet allocated"]:
+        """TSDF weights of the frame's blocks before it is fused (for their anchors)."""
+        bufs, found = self.vbg.hashmap().find(bc)
+        bufs, found = bufs.cpu().numpy().astype(np.int64), found.cpu().numpy().astype(bool)
+        out = np.zeros((len(bufs), self.res**3), np.float32)
+        if found.any():
+            arr = attribute_array(self.vbg, "weight")
+            out[found] = to_host(arr[index_like(arr, bufs[found])]).reshape(int(found.sum()), -1)
+        return out
+
+    def _anchor(self, bufs: np.ndarray, before: np.ndarray, frame: int) -> None:
+        """Each voxel the frame updated is anchored to the weighted mean of the frames fused
+        into it (rounded): a surface averaged over frames with different drift sits where their
+        mean puts it, so a correction moves it best by the mean frame's motion, not the last
+        one's (:mod:`services.fusion.move`)."""
+        w_arr, a_arr = attribute_array(self.vbg, "weight"), attribute_array(self.vbg, "anchor")
+        idx = index_like(w_arr, bufs)
+        after = to_host(w_arr[idx]).reshape(len(bufs), -1).astype(np.float64)
+        old = to_host(a_arr[idx]).reshape(len(bufs), -1).astype(np.float64)
+        added = after - before
+        mean = np.where(before > 0, old + (frame - old) * added / np.maximum(after, 1e-9), frame)
+        anchors = np.where(added > 0, np.floor(mean + 0.5), np.where(before > 0, old, frame)).astype(np.int32)
+        a_arr[idx] = like(a_arr, anchors.reshape(len(bufs), self.res, self.res, self.res, 1))
 
     def _frame_blocks(self, dimg: Any, intr: Any, extr: Any, depth: np.ndarray) -> Any:
         """Blocks within truncation of the frame's surface points, (B, 3) int32 on the device."""
@@ -393,7 +447,7 @@ class HypothesisTSDF:
             if np.any(older >= 0):
                 # a revisit rebuilt these blocks afresh: the newer reconstruction replaces the older
                 self.archive.take(older[older >= 0])
-            self.archive.add(keys[far], self._read_blocks(bufs[far]))
+            self.archive.add(keys[far], self._read_blocks(bufs[far]), epoch=self.epoch)
             self._erase_blocks(bufs[far], keys[far])
         n_in = (
             self._restore_rows(self.archive.rows_within(center, radius, self.cfg.voxel_size))
@@ -417,6 +471,102 @@ class HypothesisTSDF:
         return len(keys)
 
     # ---------------------------------------------------------------------------------------
+    # pose corrections
+
+    def move(self, motion: Motion, epoch: int) -> MoveStats:
+        """Move every voxel by the motion of its anchor frame (a pose correction), in place
+        (:mod:`services.fusion.move`).
+
+        Only the blocks holding a moving voxel, and the blocks the moved voxels land in, are
+        rewritten. Archived blocks stay as they are, tagged with the epoch they were placed
+        in, and move when read (:meth:`extract_archived_mesh`); with ``restore_archived`` they
+        move now, since a frame may restore them by key at any time."""
+        t0 = time.perf_counter()
+        self.epoch = int(epoch)
+        stats = MoveStats()
+        if len(motion):
+            bufs, keys = self._active()
+            if len(bufs):
+                arr = attribute_array(self.vbg, "anchor")
+                anchors = to_host(arr[index_like(arr, bufs)]).reshape(len(bufs), -1)
+                src = np.flatnonzero(moving_voxels(motion, anchors).any(axis=1))
+                if len(src):
+                    stats = self._move_blocks(bufs, keys, src, motion)
+            if self.cfg.restore_archived and len(self.archive):
+                stats.archived_moved = self._move_archive()
+        stats.seconds = time.perf_counter() - t0
+        return stats
+
+    def _move_blocks(self, bufs: np.ndarray, keys: np.ndarray, src: np.ndarray, motion: Motion) -> MoveStats:
+        """Rewrite active blocks ``src`` (rows of ``bufs``/``keys``) and the blocks their moved
+        voxels land in."""
+        arrays = {name: attribute_array(self.vbg, name) for name in self._layout}
+        if all(isinstance(a, np.ndarray) for a in arrays.values()):
+            # CPU: the kernel reads the grid's own memory, no copy of the blocks first
+            out_keys, out_attrs, counts = move_blocks(keys[src], arrays, motion, self.res, self.cfg.voxel_size, self._layout, rows=bufs[src])
+        else:
+            out_keys, out_attrs, counts = move_blocks(keys[src], self._read_blocks(bufs[src]), motion, self.res, self.cfg.voxel_size, self._layout)
+        # blocks the voxels landed in that hold voxels of their own: merged, heavier voxel wins
+        rest = np.setdiff1d(np.arange(len(keys)), src)
+        hit = rest[np.isin(pack_keys(keys[rest]), pack_keys(out_keys))] if len(rest) and len(out_keys) else rest[:0]
+        parts = [(out_keys, out_attrs)]
+        if len(hit):
+            parts = self._merge_parts(out_keys, out_attrs, keys[hit], self._read_blocks(bufs[hit]))
+        old = np.concatenate([src, hit])
+        self._erase_blocks(bufs[old], keys[old])
+        for k, a in parts:
+            self._write_blocks(k, a)  # the hash map grows as it needs
+        written = sum(len(k) for k, _ in parts)
+        return MoveStats(blocks_read=len(old), blocks_written=written, voxels_moved=counts.voxels_moved, gaps_filled=counts.gaps_filled)
+
+    def _merge_parts(self, keys_a: np.ndarray, attrs_a: dict, keys_b: np.ndarray, attrs_b: dict) -> list[tuple[np.ndarray, dict]]:
+        """Two sets of blocks as one, in two parts: the blocks of ``a`` with a key of their own,
+        and those of one key in both rasterised again (on a shared voxel the heavier stays)."""
+        clash = np.isin(pack_keys(keys_a), pack_keys(keys_b))
+        keys = np.concatenate([keys_a[clash], keys_b])
+        attrs = {n: np.concatenate([attrs_a[n][clash], attrs_b[n]]) for n in self._layout}
+        still = Motion(np.zeros(0, np.int64), np.zeros((0, 4, 4)))
+        merged_keys, merged = move_blocks(keys, attrs, still, self.res, self.cfg.voxel_size, self._layout)[:2]
+        return [(keys_a[~clash], {n: attrs_a[n][~clash] for n in self._layout}), (merged_keys, merged)]
+
+    def _merge(self, keys_a: np.ndarray, attrs_a: dict, keys_b: np.ndarray, attrs_b: dict) -> tuple[np.ndarray, dict]:
+        """:meth:`_merge_parts` as one set of blocks."""
+        parts = self._merge_parts(keys_a, attrs_a, keys_b, attrs_b)
+        return np.concatenate([k for k, _ in parts]).astype(np.int32), {n: np.concatenate([a[n] for _, a in parts]) for n in self._layout}
+
+    def _move_archive(self) -> int:
+        """Every archived block placed by an older epoch, moved to the current estimates."""
+        rows = self.archive.rows_before(self.epoch)
+        if len(rows) == 0:
+            return 0
+        epochs = self.archive.epochs_of(rows)
+        keys, attrs = self.archive.take(rows)
+        keys, attrs = self._archived_now(keys, attrs, epochs)
+        clash = self.archive.lookup(keys)
+        if np.any(clash >= 0):
+            k2, a2 = self.archive.take(clash[clash >= 0])
+            keys, attrs = self._merge(keys, attrs, k2, a2)
+        self.archive.add(keys, attrs, epoch=self.epoch)
+        return len(rows)
+
+    def _archived_now(
+        self, keys: np.ndarray, attrs: dict[str, np.ndarray], epochs: Annotated[np.ndarray, "(M,) int epoch per block"]
+    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """Archived blocks as the current estimates place them (blocks of older epochs moved)."""
+        old = np.flatnonzero(epochs < self.epoch)
+        if len(old) == 0 or self.epoch_motion is None:
+            return keys, attrs
+        parts = [(keys[epochs >= self.epoch], {n: a[epochs >= self.epoch] for n, a in attrs.items()})]
+        for e in np.unique(epochs[old]).tolist():
+            part = old[epochs[old] == e]
+            k, a, _ = move_blocks(keys[part], {n: v[part] for n, v in attrs.items()}, self.epoch_motion(int(e)), self.res, self.cfg.voxel_size, self._layout)
+            parts.append((k, a))
+        keys, attrs = parts[0]
+        for k, a in parts[1:]:
+            keys, attrs = self._merge(keys, attrs, k, a) if len(keys) else (k, a)
+        return keys, attrs
+
+    # ---------------------------------------------------------------------------------------
     # outputs
 
     def extract_mesh(self) -> HypothesisMesh:
@@ -436,7 +586,9 @@ class HypothesisTSDF:
             keys = keys[~np.isin(pack_keys(keys), pack_keys(active))]
         if len(keys) == 0:
             return HypothesisMesh.empty(self.K)
-        keys, attrs = self.archive.peek(self.archive.lookup(keys))
+        rows = self.archive.lookup(keys)
+        keys, attrs = self.archive.peek(rows)
+        keys, attrs = self._archived_now(keys, attrs, self.archive.epochs_of(rows))
         grid = self._new_grid(len(keys) + 16)
         self._write_blocks(keys, attrs, grid=grid)
         return extract_hypothesis_mesh(grid, self.cfg.voxel_size, self.res, self.K, self.mesh_weight_threshold)
@@ -482,6 +634,7 @@ class HypothesisTSDF:
             "block_resolution": np.int64(self.res),
             "hypotheses": np.int64(self.K),
             "frames": np.int64(self.frames),
+            "epoch": np.int64(self.epoch),
             "keys": keys[order].astype(np.int32),
         }
         state.update(self._read_blocks(bufs[order]))
@@ -490,10 +643,16 @@ class HypothesisTSDF:
 
     def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
         """Replace the whole volume by a :meth:`state_dict`; the layout must match this config."""
-        if int(state["version"]) != STATE_VERSION:
-            raise ValueError(
-                f"TSDF state version {int(state['version'])}, expected {STATE_VERSION}"
-            )
+        version = int(state["version"])
+        if version not in (1, STATE_VERSION):
+            raise ValueError(f"TSDF state version {version}, expected {STATE_VERSION} (or 1)")
+        if version == 1:
+            # saved before anchors: every block's frame is unknown (-1), and nothing moves it
+            state = dict(state)
+            for prefix, key in (("", "keys"), ("archive_", "archive_keys")):
+                n = len(np.asarray(state[key]).reshape(-1, 3))
+                state[f"{prefix}anchor"] = np.full((n, self.res, self.res, self.res, 1), -1, np.int32)
+                state[f"{prefix}offset"] = np.zeros((n, self.res, self.res, self.res, 3), np.int8)
         mine = (self.cfg.voxel_size, self.res, self.K)
         theirs = (
             float(state["voxel_size"]),
@@ -509,3 +668,4 @@ class HypothesisTSDF:
         self._write_blocks(keys, {name: state[name] for name in self._layout})
         self.archive.load_state_dict(state)
         self.frames = int(state.get("frames", 0))
+        self.epoch = int(state.get("epoch", 0))

@@ -18,6 +18,12 @@ class HypothesisMesh:
     faces: Annotated[np.ndarray, "(F, 3) int32"]
     hyp_ids: Annotated[np.ndarray, "(V, K) int32 track ids, -1 = empty slot"]
     hyp_weights: Annotated[np.ndarray, "(V, K) float32 accumulated weights l"]
+    anchors: Annotated[np.ndarray, "(V,) int32 frame index, -1 = unknown"] | None = None
+    """The frame each vertex's voxel was last fused from (a pose correction moves it with
+    that frame); None where the mesh was not read from a grid."""
+
+    def vertex_anchors(self) -> Annotated[np.ndarray, "(V,) int32"]:
+        return self.anchors if self.anchors is not None else np.full(len(self), -1, np.int32)
 
     def __len__(self) -> int:
         return int(self.vertices.shape[0])

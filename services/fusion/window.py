@@ -47,6 +47,8 @@ class BlockArchive:
         self.layout = {k: (np.dtype(d), int(c)) for k, (d, c) in layout.items()}
         self.res = res
         self._keys = np.zeros((0, 3), np.int32)
+        self._epoch = np.zeros(0, np.int32)
+        """Per row: the pose-correction epoch whose estimates placed the block."""
         self._used = np.zeros(0, bool)
         self._attrs = {k: np.zeros((0, res, res, res, c), d) for k, (d, c) in self.layout.items()}
         self._index_codes = np.zeros(0, np.int64)
@@ -69,6 +71,7 @@ class BlockArchive:
         old = len(self._used)
         new_cap = max(old + extra - len(free), 2 * old, 64)
         self._keys = np.concatenate([self._keys, np.zeros((new_cap - old, 3), np.int32)])
+        self._epoch = np.concatenate([self._epoch, np.zeros(new_cap - old, np.int32)])
         self._used = np.concatenate([self._used, np.zeros(new_cap - old, bool)])
         for name, a in self._attrs.items():
             pad = np.zeros((new_cap - old, *a.shape[1:]), a.dtype)
@@ -79,7 +82,9 @@ class BlockArchive:
         self,
         keys: Annotated[np.ndarray, "(N, 3) int32 block keys, none already archived"],
         attrs: dict[str, Annotated[np.ndarray, "(N, res, res, res, C)"]],
+        epoch: int = 0,
     ) -> None:
+        """Archive blocks placed by the estimates of pose-correction ``epoch``."""
         if len(keys) == 0:
             return
         codes = pack_keys(keys)
@@ -87,6 +92,7 @@ class BlockArchive:
             raise ValueError("block archived twice")
         rows = self._grow(len(keys))
         self._keys[rows] = keys
+        self._epoch[rows] = epoch
         self._used[rows] = True
         for name, a in self._attrs.items():
             a[rows] = attrs[name]
@@ -114,6 +120,13 @@ class BlockArchive:
         d = np.linalg.norm(block_centres(self._keys[rows], self.res, voxel_size) - center, axis=1)
         return rows[d <= radius]
 
+    def epochs_of(self, rows: Annotated[np.ndarray, "(M,) int64 archive rows"]) -> Annotated[np.ndarray, "(M,) int32"]:
+        return self._epoch[np.asarray(rows, np.int64)].copy()
+
+    def rows_before(self, epoch: int) -> Annotated[np.ndarray, "(M,) int64 rows placed before ``epoch``"]:
+        rows = self._index_rows
+        return rows[self._epoch[rows] < epoch]
+
     def peek(
         self, rows: Annotated[np.ndarray, "(M,) int64 archive rows"]
     ) -> tuple[Annotated[np.ndarray, "(M, 3) int32"], dict[str, np.ndarray]]:
@@ -137,7 +150,7 @@ class BlockArchive:
 
     def state_dict(self) -> dict[str, np.ndarray]:
         rows = self._index_rows
-        out = {"archive_keys": self._keys[rows].copy()}
+        out = {"archive_keys": self._keys[rows].copy(), "archive_epoch": self._epoch[rows].copy()}
         for name, a in self._attrs.items():
             out[f"archive_{name}"] = a[rows].copy()
         return out
@@ -145,4 +158,9 @@ class BlockArchive:
     def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
         self.__init__(self.layout, self.res)
         keys = np.asarray(state["archive_keys"], dtype=np.int32).reshape(-1, 3)
-        self.add(keys, {name: state[f"archive_{name}"] for name in self._attrs})
+        attrs = {name: state[f"archive_{name}"] for name in self._attrs}
+        # saved before pose corrections: every block of epoch 0
+        epochs = np.asarray(state.get("archive_epoch", np.zeros(len(keys), np.int32)), np.int32).reshape(-1)
+        for e in np.unique(epochs).tolist():
+            part = np.flatnonzero(epochs == e)
+            self.add(keys[part], {n: np.asarray(a)[part] for n, a in attrs.items()}, epoch=int(e))

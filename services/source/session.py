@@ -18,6 +18,7 @@ from services.source.core import Pacer, ReplayCursor, ReplayStats
 from shared.config.source import SourceConfig
 from shared.datasets.base import SequenceReader
 from shared.messages.frames import EndOfSequence, Frame, FrameAck
+from shared.messages.poses import PoseCorrection, read_corrections
 from shared.runtime.bus import Bus
 from shared.runtime.session import Session
 
@@ -55,6 +56,10 @@ class SourceSession(Session):
         self._warned_k = -1
         self.frames_out = self.output("frames", Frame)
         self.end_out = self.output("end_of_sequence", EndOfSequence)
+        self.corrections_out = self.output("poses_correction", PoseCorrection)
+        self.corrections = _due_order(read_corrections(cfg.corrections)) if cfg.corrections else []
+        """Pose corrections still to send (``source.corrections``), by the frame they follow."""
+        self.corrections_sent = 0
         self.subscribe("frame_ack", FrameAck, self._on_ack, capacity=256)
         self._refresh(clock())
 
@@ -88,6 +93,7 @@ class SourceSession(Session):
         sent = cursor.send(self.frames_out.put)
         if sent is not None:
             self.book.work_done(max(self.clock() - t0, 0.0))
+            self._send_corrections(sent.frame_index)
         self._refresh(now)
         if self.on_progress is not None:
             self.on_progress(cursor.stats)
@@ -113,10 +119,20 @@ class SourceSession(Session):
         """The replay is over (done, or stopped early): the EndOfSequence out, once."""
         if not self.ended:
             self.ended = True
+            self._send_corrections(None)
             stats = self.cursor.close(now)
             self.end_out.put(EndOfSequence(frames_published=stats.published, frames_dropped=stats.dropped, last_frame_index=stats.last_frame_index))
             self._refresh(now)
         return self.cursor.stats
+
+    def _send_corrections(self, frame_index: int | None) -> None:
+        """The corrections due once frame ``frame_index`` is out (None: all that are left, at
+        the end), each told to wait in fusion for the frame it follows."""
+        while self.corrections and (frame_index is None or _after(self.corrections[0]) <= frame_index):
+            c = self.corrections.pop(0)
+            self.corrections_out.put(c.model_copy(update={"apply_after_frame": _after(c)}))
+            self.corrections_sent += 1
+            log.info("pose correction %d (frames up to %d) sent after frame %s", c.correction_id, c.frame_index, frame_index)
 
     def _refresh(self, now: float) -> None:
         s, book = self.cursor.stats, self.book
@@ -128,3 +144,15 @@ class SourceSession(Session):
         book.figure("seconds", round(seconds, 3))
         book.figure("hz", round(s.published / seconds, 3) if seconds > 0 else None)
         book.figure("held_s", round(self.pacer.held_s, 3))
+        book.figure("corrections_sent", self.corrections_sent)
+
+
+def _after(c: PoseCorrection) -> int:
+    """The frame a replayed correction follows: its own ``apply_after_frame``, else the frame
+    it is valid up to."""
+    return c.frame_index if c.apply_after_frame is None else c.apply_after_frame
+
+
+def _due_order(corrections: list[PoseCorrection]) -> list[PoseCorrection]:
+    """By the frame each follows; file order among those that follow the same frame."""
+    return sorted(corrections, key=_after)

@@ -45,6 +45,12 @@ class SourceConfig(StrictModel):
     """Reader for the sequence folder (docs/architecture.md, "Input formats")."""
     path: str | None = None
     """Sequence folder or bag; the command line's SEQ_DIR overrides it."""
+    corrections: str | None = None
+    """A JSON-lines file of pose corrections (one ``PoseCorrection`` per line, such as the
+    ``corrections.jsonl`` of ``trackgraph synth --drift``), replayed as a SLAM back end would
+    send them: each goes out on ``poses/correction`` right after the frame it is valid up to
+    (or its own ``apply_after_frame``), and fusion applies it once it has fused that frame.
+    None: no corrections."""
     mode: Literal["lossless", "live"] = "lossless"
     """lossless: block until subscribers keep up (offline mapping). live: publish at
     ``rate_hz`` and drop, counting, frames a slow subscriber cannot take."""

@@ -19,6 +19,7 @@ from shared.messages.keyframes import (
     TrackFeature,
     TrackFeatures,
 )
+from shared.messages.poses import PoseCorrection
 from shared.messages.rpc import EmbedReply, EmbedRequest, QueryHit, QueryReply, QueryRequest
 from shared.messages.status import InputCounters, ServiceStatus
 
@@ -38,6 +39,7 @@ __all__ = [
     "KeyframeRequest",
     "MaskFeatures",
     "MeshChunk",
+    "PoseCorrection",
     "Message",
     "PlaceNode",
     "QueryHit",

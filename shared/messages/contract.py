@@ -16,6 +16,7 @@ from pydantic import BaseModel
 from shared.messages.frames import EndOfSequence, Frame, FrameAck, TrackedFrame
 from shared.messages.graph import GraphDelta, GraphSnapshot, SnapshotRequest
 from shared.messages.keyframes import KeyframeMasks, KeyframeRequest, MaskFeatures, TrackFeatures
+from shared.messages.poses import PoseCorrection
 from shared.messages.rpc import EmbedReply, EmbedRequest, QueryReply, QueryRequest
 from shared.messages.status import ServiceStatus
 
@@ -102,6 +103,12 @@ CONTRACT: tuple[KeyContract, ...] = (
     KeyContract(
         "tracks_end", f"{_R}/tracks/end", "pub/sub", EndOfSequence, None, ("tracker",),
         (Listener("fusion", "fifo"),), "The tracker has emitted everything for the sequence.",
+    ),
+    KeyContract(
+        "poses_correction", f"{_R}/poses/correction", "pub/sub", PoseCorrection, None, ("source",),
+        (Listener("fusion", "fifo", "held until it has fused apply_after_frame; journaled with the frames"),),
+        "Corrected poses of past frames after a loop closure, from a SLAM back end (any client may publish; "
+        "the source replays a recorded one, source.corrections).",
     ),
     KeyContract(
         "graph_delta", f"{_R}/graph/delta", "pub/sub", GraphDelta, None, ("fusion",),

@@ -77,14 +77,20 @@ def rooms_json(layout: Layout) -> dict:
 
 
 def generate(config: SynthConfig | str, seed: int, out_dir: str | Path, *, overwrite: bool = False,
-             progress: bool | None = None, workers: int | None = None, name: str | None = None) -> dict:
+             progress: bool | None = None, workers: int | None = None, name: str | None = None,
+             drift: float | None = None) -> dict:
     """Generate a synthetic RGB-D sequence with ground truth into ``out_dir``.
 
     ``config`` is a :class:`SynthConfig` or a preset name (small, demo, revisit). The same
     config and seed give byte-identical files. Raises :class:`writer.OutputExistsError` if
     ``out_dir`` is a non-empty folder (unless ``overwrite`` and it is a previous synth output).
     ``name`` labels the scene in the ground truth (default: the preset name, or "custom").
-    Returns ``{"frames", "objects", "out"}`` plus a few statistics.
+    ``drift``: odometry drift in metres per metre travelled (0 < drift <= 0.5; the seed drives
+    it too): ``traj.txt`` becomes the drifted odometry, with ``traj_gt.txt`` and
+    ``corrections.jsonl`` beside it (:func:`shared.synth.drift.add_drift`); a bad rate raises
+    ValueError before any work.
+    Returns ``{"frames", "objects", "out"}`` plus a few statistics, and with ``drift`` also
+    ``"drift"`` (the rate) and ``"corrections"`` (how many).
     """
     from shared.synth import groundtruth, pictures
     from shared.synth.render import Renderer
@@ -94,6 +100,10 @@ def generate(config: SynthConfig | str, seed: int, out_dir: str | Path, *, overw
     started = time.perf_counter()
     name = name or (config if isinstance(config, str) else None)
     cfg = preset_config(config) if isinstance(config, str) else config
+    if drift is not None:
+        from shared.synth.drift import validate_rate
+
+        drift = validate_rate(drift)
     out = Path(out_dir).expanduser().absolute()
     writer.check_output(out, overwrite)
     if progress is None:
@@ -207,13 +217,19 @@ def generate(config: SynthConfig | str, seed: int, out_dir: str | Path, *, overw
         title = (f"{scene_name}: {len(layout.rooms)} rooms, {len(keep)} ground-truth objects, "
                  f"{n} frames, {traj.length:.1f} m walked")
         writer.write_bytes(staging / "topdown.png", pictures.topdown(world, traj, title))
+        drifted = None
+        if drift is not None:
+            from shared.synth.drift import add_drift
+
+            # In the staging folder, so a sequence with drift appears whole or not at all.
+            drifted = add_drift(staging, drift, seed)
         writer.finalize(staging, out, overwrite)
     except BaseException:
         writer.discard(staging)
         raise
     seconds = time.perf_counter() - started
     log.info("synth %s seed %d: %d frames, %d objects in %.1f s -> %s", name or "custom", seed, n, len(keep), seconds, out)
-    return {
+    result = {
         "frames": n,
         "objects": len(keep),
         "out": str(out),
@@ -221,17 +237,22 @@ def generate(config: SynthConfig | str, seed: int, out_dir: str | Path, *, overw
         "gt_points": int(len(cloud.points)),
         "seconds": round(seconds, 2),
     }
+    if drifted is not None:
+        result["drift"] = drifted["rate"]
+        result["corrections"] = drifted["corrections"]
+    return result
 
 
 def run_synth(preset: str, seed: int, out: Path, overrides: dict | None = None, *, overwrite: bool = False,
-              progress: bool | None = None) -> dict:
-    """Entry point of ``trackgraph synth --preset P --seed N --out DIR``.
+              progress: bool | None = None, drift: float | None = None) -> dict:
+    """Entry point of ``trackgraph synth --preset P --seed N --out DIR [--drift RATE]``.
 
     ``overrides`` are nested config keys layered on the preset (``{"camera": {"frames": 30}}``);
-    bad keys raise :class:`shared.config.base.ConfigError` naming them.
+    bad keys raise :class:`shared.config.base.ConfigError` naming them. ``drift``: see
+    :func:`generate`.
     """
     cfg = preset_config(preset, overrides)
-    return generate(cfg, seed, out, overwrite=overwrite, progress=progress, name=preset)
+    return generate(cfg, seed, out, overwrite=overwrite, progress=progress, name=preset, drift=drift)
 
 
 __all__ = ["PRESETS", "generate", "intrinsics", "run_synth"]

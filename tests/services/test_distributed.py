@@ -7,6 +7,7 @@ import socket
 import threading
 import time
 
+import numpy as np
 import pytest
 
 from services.fusion.node import FusionNode
@@ -76,3 +77,67 @@ def test_distributed_lossless_equals_in_process(small, tmp_path):
     assert reference["segments"] == len(got.segments)
     assert [(s.id, s.tracks) for s in got.segments] == [(s.id, s.tracks) for s in want.segments]
     assert [s.gallery_tracks for s in got.segments] == [s.gallery_tracks for s in want.segments]
+
+
+@pytest.fixture(scope="module")
+def drifting(tmp_path_factory):
+    """The small scene with drifting odometry, and a loop-closure correction at frame 30
+    (true poses up to it) sent 6 frames late, as a back end would."""
+    from shared.messages.poses import PoseCorrection
+    from shared.synth import run_synth
+
+    out = tmp_path_factory.mktemp("synth") / "drifting"
+    run_synth("small", 0, out, drift=0.05)
+    true = np.loadtxt(out / "traj_gt.txt").reshape(-1, 4, 4)
+    c = PoseCorrection(correction_id=1, frame_index=30, frames=np.arange(31), poses=true[:31], apply_after_frame=36)
+    (out / "late.jsonl").write_text(c.to_json() + "\n")
+    return out
+
+
+def test_distributed_corrections_equal_in_process(drifting, tmp_path):
+    """The source replays the correction on poses/correction; fusion applies it after the same
+    frame as the in-process map does, and the two maps are the same."""
+    port = _free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    base = TrackGraphConfig.model_validate({
+        "transport": {"mode": "client", "connect": [endpoint], "shared_memory": False},
+        "keyframe_vl": {"segmenter": {"backend": "simulated"}, "vl": {"backend": "simulated"}},
+        "tracker": {"features": {"backend": "classical", "short_side": 240}, "wait_for_masks": True, "device": "cpu"},
+        "source": {"max_frames": 48, "corrections": str(drifting / "late.jsonl")},
+    })  # fmt: skip
+    cfg = prepare_config(base, drifting)
+    run_map(drifting, cfg, tmp_path / "in_process", progress=False)
+
+    stop = threading.Event()
+    router_cfg = cfg.transport.model_copy(update={"mode": "router", "connect": [], "listen": [endpoint]})
+    router = threading.Thread(target=run_router, args=(router_cfg, stop), daemon=True)
+    router.start()
+    time.sleep(0.5)
+    nodes = []
+    try:
+        nodes.append(KeyframeVLNode(cfg))
+        fusion = FusionNode(cfg, tmp_path / "distributed")
+        nodes.append(fusion)
+        nodes.append(TrackerNode(cfg))
+        time.sleep(1.0)
+        stats = run_source(cfg, drifting, wait_subscribers_s=20, progress=False)
+        assert stats.published == 48 and stats.dropped == 0
+        assert fusion.finished.wait(120), f"fusion did not finish: {fusion.stats()}"
+        got = fusion.core.snapshot()
+        corrections = fusion.core.corrections
+    finally:
+        for n in reversed(nodes):
+            n.close()
+        stop.set()
+        router.join(timeout=10)
+
+    from shared.graph.store import MapStore
+
+    want = MapStore(tmp_path / "in_process" / "graph").load().snapshot
+    assert corrections.applied == 1 and corrections.last_id == 1
+    np.testing.assert_allclose(got.trajectory, want.trajectory, atol=1e-9)
+    true = np.loadtxt(drifting / "traj_gt.txt").reshape(-1, 4, 4)
+    np.testing.assert_allclose(got.trajectory[:31, :3], true[:31, :3, 3], atol=1e-9)
+    assert [(s.id, s.tracks) for s in got.segments] == [(s.id, s.tracks) for s in want.segments]
+    for a, b in zip(got.segments, want.segments, strict=True):
+        np.testing.assert_allclose(a.centroid, b.centroid, atol=1e-6)

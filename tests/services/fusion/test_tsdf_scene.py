@@ -263,10 +263,10 @@ def test_unsure_propagated_pixels_do_not_vote():
     from shared.config.fusion import FusionConfig
     from shared.messages.frames import Frame, TrackedFrame, TrackObservation
 
-    def tracked(T, depth, rgb, ids) -> TrackedFrame:
+    def tracked(i, T, depth, rgb, ids) -> TrackedFrame:
         wrong = np.where(ids == 2, 9, ids).astype(np.int32)  # propagation named the neighbour
         conf = np.where(ids == 2, 60, 255).astype(np.uint8)  # ... and was unsure of it
-        frame = Frame(frame_index=0, rgb=rgb, depth=np.round(depth * 1000).astype(np.uint16),
+        frame = Frame(frame_index=i, rgb=rgb, depth=np.round(depth * 1000).astype(np.uint16),
                       depth_scale=1000.0, intrinsics=K, T_world_cam=T)
         obs = [TrackObservation(track_id=int(t), keyframe=False, frames_since_keyframe=1) for t in np.unique(wrong) if t >= 0]
         return TrackedFrame(frame=frame, track_ids=wrong, tracks=obs, confidence=conf)
@@ -274,8 +274,8 @@ def test_unsure_propagated_pixels_do_not_vote():
     def winners(min_conf: float) -> set[int]:
         cfg = FusionConfig.model_validate({"tsdf": {"min_label_confidence": min_conf}, "mesh_every_n_frames": 1000})
         fusion = FusionCore(cfg, device="cpu")
-        for f in FRAMES:
-            fusion.add_frame(tracked(*f))
+        for i, f in enumerate(FRAMES):
+            fusion.add_frame(tracked(i, *f))
         mesh = fusion.tsdf.extract_mesh()
         d = surface_distances(mesh.vertices.astype(np.float64))
         on_box = (d.argmin(1) == 1) & (np.sort(d, 1)[:, 1] > 0.05)
