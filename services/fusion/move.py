@@ -320,26 +320,31 @@ if numba is not None:
         out_id = np.zeros((cells, k), np.int32)
         out_w = np.zeros((cells, k), np.float32)
         for i in range(cell.shape[0]):
-            c = cell[i]
-            for j in range(k):
-                t = ids[i, j]
-                w = ws[i, j]
-                if t == 0 or w <= 0:
-                    continue
-                slot = -1
-                low = 0
-                for s in range(k):
-                    if out_id[c, s] == t:
-                        slot = s
-                        break
-                    if out_w[c, s] < out_w[c, low]:
-                        low = s
-                if slot >= 0:
-                    out_w[c, slot] += w
-                elif out_w[c, low] < w:
-                    out_id[c, low] = t
-                    out_w[c, low] = w
+            _add_votes(out_id, out_w, cell[i], ids[i], ws[i], k)
         return out_id, out_w
+
+    @numba.njit(cache=True, nogil=True)
+    def _add_votes(out_id, out_w, c, ids, ws, k):  # pragma: no cover - compiled
+        """One voxel's votes into grid point ``c``: a track's weight adds to its slot, a new
+        track takes an empty or the lightest slot if it weighs more (eq. 5's slot rule)."""
+        for j in range(k):
+            t = ids[j]
+            w = ws[j]
+            if t == 0 or w <= 0:
+                continue
+            slot = -1
+            low = 0
+            for s in range(k):
+                if out_id[c, s] == t:
+                    slot = s
+                    break
+                if out_w[c, s] < out_w[c, low]:
+                    low = s
+            if slot >= 0:
+                out_w[c, slot] += w
+            elif out_w[c, low] < w:
+                out_id[c, low] = t
+                out_w[c, low] = w
 
 
 def _move(vox, row, deltas, tsdf, grad, off, voxel_size):
@@ -535,24 +540,7 @@ if numba is not None:
                 t = target_h[b, v]
                 f = ((t[0] // res - bmin[0]) * ext[1] + (t[1] // res - bmin[1])) * ext[2] + (t[2] // res - bmin[2])
                 c = lut[f] * n + ((t[2] % res) * res + (t[1] % res)) * res + (t[0] % res)
-                for j in range(k):
-                    tid = hyp_id[idx[b], v, j]
-                    w = hyp_w[idx[b], v, j]
-                    if tid == 0 or w <= 0:
-                        continue
-                    slot = -1
-                    low = 0
-                    for s in range(k):
-                        if id_o[c, s] == tid:
-                            slot = s
-                            break
-                        if w_o[c, s] < w_o[c, low]:
-                            low = s
-                    if slot >= 0:
-                        w_o[c, slot] += w
-                    elif w_o[c, low] < w:
-                        id_o[c, low] = tid
-                        w_o[c, low] = w
+                _add_votes(id_o, w_o, c, hyp_id[idx[b], v], hyp_w[idx[b], v], k)
         tsdf_o = np.zeros(cells, np.float32)
         weight_o = np.zeros(cells, np.float32)
         color_o = np.zeros((cells, 3), np.float32)

@@ -21,6 +21,13 @@ Output folder (Replica NICE-SLAM layout plus ground truth)::
     gt/scene.json                  rooms, doorways, object boxes, mesh bounds, config, seed
     contact_sheet.png, topdown.png overview pictures
 
+With ``--drift RATE`` (:mod:`shared.synth.drift`) ``traj.txt`` holds drifting odometry and
+three more files come with it::
+
+    traj_gt.txt                    the true poses (the images are rendered from them)
+    corrections.jsonl              one PoseCorrection per loop closure: the true poses so far
+    drift.png                      true and drifted walks from above, closures marked
+
 The world frame is z up with the floor at z = 0 (metres). Ground truth lists the objects that
 appear in at least one frame; walls, floors and ceilings are objects too (categories wall,
 floor, ceiling), which OpenLex3D's evaluation excludes by name.

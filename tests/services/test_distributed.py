@@ -36,6 +36,33 @@ def small(tmp_path_factory):
     return out
 
 
+def _run_distributed(cfg, endpoint: str, seq, out) -> FusionNode:
+    """A router on ``endpoint``, keyframe_vl, fusion and the tracker as Zenoh participants, and
+    the source replaying 48 frames of ``seq`` losslessly; returns fusion (closed) once it has
+    finished the map."""
+    stop = threading.Event()
+    router_cfg = cfg.transport.model_copy(update={"mode": "router", "connect": [], "listen": [endpoint]})
+    router = threading.Thread(target=run_router, args=(router_cfg, stop), daemon=True)
+    router.start()
+    time.sleep(0.5)
+    nodes = []
+    try:
+        nodes.append(KeyframeVLNode(cfg))
+        fusion = FusionNode(cfg, out)
+        nodes.append(fusion)
+        nodes.append(TrackerNode(cfg))
+        time.sleep(1.0)
+        stats = run_source(cfg, seq, wait_subscribers_s=20, progress=False)
+        assert stats.published == 48 and stats.dropped == 0
+        assert fusion.finished.wait(120), f"fusion did not finish: {fusion.stats()}"
+    finally:
+        for n in reversed(nodes):
+            n.close()
+        stop.set()
+        router.join(timeout=10)
+    return fusion
+
+
 def test_distributed_lossless_equals_in_process(small, tmp_path):
     port = _free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
@@ -49,27 +76,8 @@ def test_distributed_lossless_equals_in_process(small, tmp_path):
 
     reference = run_map(small, cfg, tmp_path / "in_process", progress=False)
 
-    stop = threading.Event()
-    router_cfg = cfg.transport.model_copy(update={"mode": "router", "connect": [], "listen": [endpoint]})
-    router = threading.Thread(target=run_router, args=(router_cfg, stop), daemon=True)
-    router.start()
-    time.sleep(0.5)
-    nodes = []
-    try:
-        nodes.append(KeyframeVLNode(cfg))
-        fusion = FusionNode(cfg, tmp_path / "distributed")
-        nodes.append(fusion)
-        nodes.append(TrackerNode(cfg))
-        time.sleep(1.0)
-        stats = run_source(cfg, small, wait_subscribers_s=20, progress=False)
-        assert stats.published == 48 and stats.dropped == 0
-        assert fusion.finished.wait(120), f"fusion did not finish: {fusion.stats()}"
-        got = fusion.core.snapshot()
-    finally:
-        for n in reversed(nodes):
-            n.close()
-        stop.set()
-        router.join(timeout=10)
+    fusion = _run_distributed(cfg, endpoint, small, tmp_path / "distributed")
+    got = fusion.core.snapshot()
 
     from shared.graph.store import MapStore
 
@@ -108,28 +116,8 @@ def test_distributed_corrections_equal_in_process(drifting, tmp_path):
     cfg = prepare_config(base, drifting)
     run_map(drifting, cfg, tmp_path / "in_process", progress=False)
 
-    stop = threading.Event()
-    router_cfg = cfg.transport.model_copy(update={"mode": "router", "connect": [], "listen": [endpoint]})
-    router = threading.Thread(target=run_router, args=(router_cfg, stop), daemon=True)
-    router.start()
-    time.sleep(0.5)
-    nodes = []
-    try:
-        nodes.append(KeyframeVLNode(cfg))
-        fusion = FusionNode(cfg, tmp_path / "distributed")
-        nodes.append(fusion)
-        nodes.append(TrackerNode(cfg))
-        time.sleep(1.0)
-        stats = run_source(cfg, drifting, wait_subscribers_s=20, progress=False)
-        assert stats.published == 48 and stats.dropped == 0
-        assert fusion.finished.wait(120), f"fusion did not finish: {fusion.stats()}"
-        got = fusion.core.snapshot()
-        corrections = fusion.core.corrections
-    finally:
-        for n in reversed(nodes):
-            n.close()
-        stop.set()
-        router.join(timeout=10)
+    fusion = _run_distributed(cfg, endpoint, drifting, tmp_path / "distributed")
+    got, corrections = fusion.core.snapshot(), fusion.core.corrections
 
     from shared.graph.store import MapStore
 

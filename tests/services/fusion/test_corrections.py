@@ -229,3 +229,50 @@ def test_the_session_holds_counts_and_journals_corrections(drifting, tmp_path):
     finally:
         session.close(save=False)
         bus.close()
+
+
+def test_a_restarted_fusion_applies_a_pending_correction_at_the_same_frame(drifting, tmp_path):
+    """A correction waiting for its frame is kept in the snapshot, and one that came after it
+    in the journal: a fusion killed and resumed applies both where the uninterrupted one does."""
+    from shared.graph.store import MapStore
+
+    def session(m: Mapper, out, resume: bool = False) -> FusionSession:
+        return FusionSession(InProcessBus(m.cfg.robot_id), m.cfg, m.core, store=MapStore(out / "graph"), out=out, resume=resume)
+
+    def feed(m: Mapper, s: FusionSession, frames) -> None:
+        for i in frames:
+            m.tracker.begin_frame(m.reader.frame(i))
+            tracked = m.tracker.end_frame()
+            feats = m.tracker.take_track_features(i)
+            if feats is not None:
+                s._apply_features(feats)
+            s._apply_frame(tracked)
+
+    first = _correction(drifting, cid=1, upto=8).model_copy(update={"apply_after_frame": 20})
+    second = _correction(drifting, cid=2, upto=22).model_copy(update={"apply_after_frame": 24})
+
+    whole = Mapper(drifting)
+    s = session(whole, tmp_path / "whole")
+    s._on_correction(first)
+    feed(whole, s, range(14))
+    s._on_correction(second)
+    feed(whole, s, range(14, 30))
+    s.close(save=False)
+
+    part = Mapper(drifting)
+    s = session(part, tmp_path / "part")
+    s._on_correction(first)
+    feed(part, s, range(10))
+    s.save()  # the snapshot holds the pending correction
+    feed(part, s, range(10, 14))
+    s._on_correction(second)  # in the journal only
+    s.journal.sync()
+    s.journal.close()  # killed: no final save
+    resumed = Mapper(drifting)
+    resumed.tracker, resumed.next = part.tracker, 14
+    s = session(resumed, tmp_path / "part", resume=True)
+    assert [c.correction_id for c in s.pending_corrections] == [1, 2] and resumed.core.last_frame_index == 13
+    feed(resumed, s, range(14, 30))
+    s.close(save=False)
+    assert resumed.core.corrections.applied == whole.core.corrections.applied == 2
+    _assert_same_state(_state(resumed.core), _state(whole.core))
