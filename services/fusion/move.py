@@ -1,17 +1,24 @@
 """Voxel blocks moved rigidly, each voxel with the motion of its own anchor frame.
 
 A pose correction (:mod:`services.fusion.poses`) gives a rigid motion per frame; every voxel
-moves with the frame it was last fused from. A voxel keeps its signed distance, weight, colour
-and hypotheses (a rigid motion preserves distances to the surface) and lands on the grid
-point nearest to its moved centre. That point is up to half a voxel from the moved centre, so
-the signed distance is carried there along its gradient (finite differences inside the
-block): without it a whole wall would shift by the rounding. Two voxels landing on one point
-keep the heavier; a rotation leaves some grid points between two filled neighbours empty,
-and those are filled from the two.
+moves with its anchor, the mean frame fused into it (``HypothesisTSDF.integrate``). A voxel
+keeps its signed distance, weight, colour and hypotheses (a rigid motion preserves distances
+to the surface):
+
+- it lands on the grid point nearest to where its content is: its centre plus its ``offset``
+  attribute, the sub-voxel remainder of earlier moves (int8, :data:`OFFSET_SCALE`), which this
+  move updates, so roundings do not add up over many corrections;
+- its signed distance is carried from its moved centre to that grid point along its gradient
+  (finite differences inside the block): without it a whole wall would shift by the rounding;
+- its votes go to the voxel nearest to the moved surface point (:data:`HYPOTHESIS_ATTRS`), where
+  a pixel would have voted, and votes landing together add up track by track;
+- of two voxels landing on one grid point the heavier stays, and a grid point left empty
+  between two filled neighbours (a rotation's rounding) is filled from them.
 
 Everything works on whole blocks as dense arrays (B, res, res, res, C), with the block's
-voxels in Open3D's order, index ``(z * res + y) * res + x``. The per-voxel loops run in numba
-when it is installed (the fusion extra has it) and in numpy otherwise.
+voxels in Open3D's order, index ``(z * res + y) * res + x``. With numba (the fusion extra has
+it) the work is a few passes over the grid's own memory (:func:`_move_blocks_fused`);
+without it numpy does the same step by step, slower.
 """
 
 from __future__ import annotations

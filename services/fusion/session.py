@@ -340,8 +340,9 @@ class FusionSession(Session):
         """Every pending correction that is due (``final``: all of them, at the map's end)."""
         last = self.core.last_frame_index
         due = [c for c in self.pending_corrections if final or c.apply_after_frame is None or last >= c.apply_after_frame]
+        # by identity: models holding arrays do not compare with ==
+        self.pending_corrections = [c for c in self.pending_corrections if all(c is not d for d in due)]
         for c in due:
-            self.pending_corrections.remove(c)
             try:
                 out = self.core.apply_correction(c)
             except CorrectionError as exc:

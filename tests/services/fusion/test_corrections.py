@@ -203,9 +203,10 @@ def test_the_session_holds_counts_and_journals_corrections(drifting, tmp_path):
         topic = session.topics.poses_correction
         early = _correction(drifting, cid=1, upto=10).model_copy(update={"apply_after_frame": 15})
         pub = bus.publisher(topic, PoseCorrection)
+        pub.put(_correction(drifting, cid=9, upto=10).model_copy(update={"apply_after_frame": 1000}))  # due at the map's end
         pub.put(early)
         bus.drain()
-        assert len(session.pending_corrections) == 1  # nothing fused yet
+        assert len(session.pending_corrections) == 2  # nothing fused yet
         for i in range(16):
             m.tracker.begin_frame(m.reader.frame(i))
             tracked = m.tracker.end_frame()
@@ -213,7 +214,7 @@ def test_the_session_holds_counts_and_journals_corrections(drifting, tmp_path):
             if feats is not None:
                 session._apply_features(feats)
             session._apply_frame(tracked)
-        assert not session.pending_corrections and m.core.corrections.applied == 1
+        assert [c.correction_id for c in session.pending_corrections] == [9] and m.core.corrections.applied == 1
         assert m.core.book.last_id == 1
         before = _state(m.core)
         pub.put(_correction(drifting, cid=0, upto=10))  # older than the newest
@@ -222,10 +223,10 @@ def test_the_session_holds_counts_and_journals_corrections(drifting, tmp_path):
         bus.drain()
         _assert_same_state(_state(m.core), before)
         counters = next(c for c in session.book.report().inputs if c.name == "poses_correction")
-        assert counters.received == 3 and counters.rejected == 2 and counters.processed == 1
+        assert counters.received == 4 and counters.rejected == 2 and counters.processed == 1
         assert "frame 99 is unknown" in session.correction_error
         figures = session.book.report().figures["corrections"]
-        assert figures["applied"] == 1 and figures["refused"] == 2
+        assert figures["applied"] == 1 and figures["refused"] == 2 and figures["pending"] == 1
     finally:
         session.close(save=False)
         bus.close()
