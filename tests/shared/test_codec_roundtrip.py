@@ -57,6 +57,7 @@ from shared.messages import (
     TrackFeatures,
     TrackObservation,
 )
+from shared.messages.poses import PoseCorrection
 
 FAST = settings(max_examples=25, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 
@@ -394,7 +395,17 @@ def service_statuses(draw: st.DrawFn) -> ServiceStatus:
     )  # fmt: skip
 
 
+@st.composite
+def pose_corrections(draw: st.DrawFn) -> PoseCorrection:
+    frames = sorted(draw(st.sets(st.integers(0, 10_000), min_size=1, max_size=6)))
+    return PoseCorrection(
+        correction_id=draw(NONNEG), frame_index=frames[-1] + draw(st.integers(0, 100)), frames=np.asarray(frames, np.int64),
+        poses=np.stack([draw(rigid_poses()) for _ in frames]), apply_after_frame=draw(st.none() | NONNEG),
+    )  # fmt: skip
+
+
 STRATEGIES: dict[type[BaseModel], st.SearchStrategy] = {
+    PoseCorrection: pose_corrections(),
     ServiceStatus: service_statuses(),
     Frame: frames(),
     EndOfSequence: end_of_sequences(),
