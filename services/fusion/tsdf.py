@@ -664,7 +664,8 @@ class HypothesisTSDF:
                 f"TSDF state has (voxel_size, block_resolution, K) = {theirs}, config has {mine}"
             )
         keys = np.asarray(state["keys"], np.int32).reshape(-1, 3)
-        self.vbg = self._new_grid(max(self.cfg.initial_blocks, len(keys)))
+        # a quarter to spare: a grid loaded full rehashes (copies every block) on the first new one
+        self.vbg = self._new_grid(max(self.cfg.initial_blocks, len(keys) + len(keys) // 4))
         self._write_blocks(keys, {name: state[name] for name in self._layout})
         self.archive.load_state_dict(state)
         self.frames = int(state.get("frames", 0))
