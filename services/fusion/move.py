@@ -517,18 +517,8 @@ if numba is not None:
                     t = target[b, v] if which == 0 else target_h[b, v]
                     f = ((t[0] // res - bmin[0]) * ext[1] + (t[1] // res - bmin[1])) * ext[2] + (t[2] // res - bmin[2])
                     lut[f] = 0
-        count = 0
-        for f in range(size):
-            if lut[f] == 0:
-                lut[f] = count
-                count += 1
-        keys = np.empty((count, 3), np.int64)
-        for f in range(size):
-            j = lut[f]
-            if j >= 0:
-                keys[j, 0] = f // (ext[1] * ext[2]) + bmin[0]
-                keys[j, 1] = (f // ext[2]) % ext[1] + bmin[1]
-                keys[j, 2] = f % ext[2] + bmin[2]
+        keys = _number_blocks(lut, bmin, ext)
+        count = len(keys)
         cells = count * n
         best_b = np.full(cells, -1, np.int64)
         best_v = np.zeros(cells, np.int64)
@@ -662,6 +652,24 @@ if numba is not None:
         return lo, hi
 
     @numba.njit(cache=True, nogil=True)
+    def _number_blocks(lut, lo, ext):  # pragma: no cover - compiled
+        """The blocks marked 0 in the table over the box ``lo`` + ``ext`` numbered in table
+        order (in place: each entry becomes its block's index, -1 stays), and their keys."""
+        count = 0
+        for f in range(lut.shape[0]):
+            if lut[f] == 0:
+                lut[f] = count
+                count += 1
+        keys = np.empty((count, 3), np.int64)
+        for f in range(lut.shape[0]):
+            j = lut[f]
+            if j >= 0:
+                keys[j, 0] = f // (ext[1] * ext[2]) + lo[0]
+                keys[j, 1] = (f // ext[2]) % ext[1] + lo[1]
+                keys[j, 2] = f % ext[2] + lo[2]
+        return keys
+
+    @numba.njit(cache=True, nogil=True)
     def _bounds_numba(target, res):  # pragma: no cover - compiled
         lo = np.full(3, np.iinfo(np.int64).max, np.int64)
         hi = np.full(3, np.iinfo(np.int64).min, np.int64)
@@ -686,18 +694,7 @@ if numba is not None:
             f = (b0 * ext[1] + b1) * ext[2] + b2
             flat[i] = f
             lut[f] = 0
-        count = 0
-        for f in range(size):
-            if lut[f] == 0:
-                lut[f] = count
-                count += 1
-        keys = np.empty((count, 3), np.int64)
-        for f in range(size):
-            j = lut[f]
-            if j >= 0:
-                keys[j, 0] = f // (ext[1] * ext[2]) + lo[0]
-                keys[j, 1] = (f // ext[2]) % ext[1] + lo[1]
-                keys[j, 2] = f % ext[2] + lo[2]
+        keys = _number_blocks(lut, lo, ext)
         n = res * res * res
         cells = np.empty(m, np.int64)
         for i in range(m):

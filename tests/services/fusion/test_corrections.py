@@ -57,19 +57,30 @@ class Mapper:
         self.true = _true(seq) if true_poses else None
         self.next = 0
 
+    def track(self, i: int):
+        """Frame ``i`` tracked, and the track features it released (or None)."""
+        frame = self.reader.frame(i)
+        if self.true is not None:
+            frame = frame.model_copy(update={"T_world_cam": self.true[i]})
+        self.tracker.begin_frame(frame)
+        return self.tracker.end_frame(), self.tracker.take_track_features(i)
+
     def run(self, upto: int) -> FusionCore:
         for i in range(self.next, upto):
-            frame = self.reader.frame(i)
-            if self.true is not None:
-                frame = frame.model_copy(update={"T_world_cam": self.true[i]})
-            self.tracker.begin_frame(frame)
-            tracked = self.tracker.end_frame()
-            feats = self.tracker.take_track_features(i)
+            tracked, feats = self.track(i)
             if feats is not None:
                 self.core.add_track_features(feats)
             self.core.add_frame(tracked)
         self.next = max(self.next, upto)
         return self.core
+
+    def feed(self, session: FusionSession, frames) -> None:
+        """The frames through a fusion session (on this mapper's core) instead."""
+        for i in frames:
+            tracked, feats = self.track(i)
+            if feats is not None:
+                session._apply_features(feats)
+            session._apply_frame(tracked)
 
 
 def _points(core: FusionCore) -> np.ndarray:
@@ -207,13 +218,7 @@ def test_the_session_holds_counts_and_journals_corrections(drifting, tmp_path):
         pub.put(early)
         bus.drain()
         assert len(session.pending_corrections) == 2  # nothing fused yet
-        for i in range(16):
-            m.tracker.begin_frame(m.reader.frame(i))
-            tracked = m.tracker.end_frame()
-            feats = m.tracker.take_track_features(i)
-            if feats is not None:
-                session._apply_features(feats)
-            session._apply_frame(tracked)
+        m.feed(session, range(16))
         assert [c.correction_id for c in session.pending_corrections] == [9] and m.core.corrections.applied == 1
         assert m.core.book.last_id == 1
         before = _state(m.core)
@@ -240,32 +245,23 @@ def test_a_restarted_fusion_applies_a_pending_correction_at_the_same_frame(drift
     def session(m: Mapper, out, resume: bool = False) -> FusionSession:
         return FusionSession(InProcessBus(m.cfg.robot_id), m.cfg, m.core, store=MapStore(out / "graph"), out=out, resume=resume)
 
-    def feed(m: Mapper, s: FusionSession, frames) -> None:
-        for i in frames:
-            m.tracker.begin_frame(m.reader.frame(i))
-            tracked = m.tracker.end_frame()
-            feats = m.tracker.take_track_features(i)
-            if feats is not None:
-                s._apply_features(feats)
-            s._apply_frame(tracked)
-
     first = _correction(drifting, cid=1, upto=8).model_copy(update={"apply_after_frame": 20})
     second = _correction(drifting, cid=2, upto=22).model_copy(update={"apply_after_frame": 24})
 
     whole = Mapper(drifting)
     s = session(whole, tmp_path / "whole")
     s._on_correction(first)
-    feed(whole, s, range(14))
+    whole.feed(s, range(14))
     s._on_correction(second)
-    feed(whole, s, range(14, 30))
+    whole.feed(s, range(14, 30))
     s.close(save=False)
 
     part = Mapper(drifting)
     s = session(part, tmp_path / "part")
     s._on_correction(first)
-    feed(part, s, range(10))
+    part.feed(s, range(10))
     s.save()  # the snapshot holds the pending correction
-    feed(part, s, range(10, 14))
+    part.feed(s, range(10, 14))
     s._on_correction(second)  # in the journal only
     s.journal.sync()
     s.journal.close()  # killed: no final save
@@ -273,7 +269,7 @@ def test_a_restarted_fusion_applies_a_pending_correction_at_the_same_frame(drift
     resumed.tracker, resumed.next = part.tracker, 14
     s = session(resumed, tmp_path / "part", resume=True)
     assert [c.correction_id for c in s.pending_corrections] == [1, 2] and resumed.core.last_frame_index == 13
-    feed(resumed, s, range(14, 30))
+    resumed.feed(s, range(14, 30))
     s.close(save=False)
     assert resumed.core.corrections.applied == whole.core.corrections.applied == 2
     _assert_same_state(_state(resumed.core), _state(whole.core))

@@ -159,11 +159,9 @@ def test_numba_and_numpy_paths_agree():
     tsdf = rng.uniform(-1, 1, (5, 8, 8, 8)).astype(np.float32)
     filled = rng.random((5, 8, 8, 8)) > 0.3
     fast = move._gradient(tsdf, filled)
-    saved, move.numba = move.numba, None
-    try:
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(move, "numba", None)
         slow = move._gradient(tsdf, filled)
-    finally:
-        move.numba = saved
     np.testing.assert_allclose(fast[filled], slow[filled], atol=1e-6)
     vox = rng.integers(-50, 50, (400, 3))
     row = rng.integers(-1, 2, 400)
@@ -187,11 +185,9 @@ def test_the_one_pass_kernel_moves_as_the_step_by_step_path():
     attrs = tsdf._read_blocks(bufs)
     motion = book.correct(_correct(book, _delta(4.0, (0.07, -0.03, 0.02)), list(range(6))))
     k1, a1, c1 = move.move_blocks(keys, attrs, motion, tsdf.res, tsdf.cfg.voxel_size, tsdf._layout)
-    saved, move.FUSED_LAYOUT = move.FUSED_LAYOUT, set()
-    try:
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(move, "FUSED_LAYOUT", set())
         k2, a2, c2 = move.move_blocks(keys, attrs, motion, tsdf.res, tsdf.cfg.voxel_size, tsdf._layout)
-    finally:
-        move.FUSED_LAYOUT = saved
     assert c1.voxels_moved == c2.voxels_moved > 0 and c1.gaps_filled == c2.gaps_filled
     o1, o2 = np.lexsort(k1.T[::-1]), np.lexsort(k2.T[::-1])
     assert np.array_equal(k1[o1], k2[o2])
@@ -213,11 +209,9 @@ def test_gap_filling_in_numba_equals_numpy():
     a = {k: v.copy() for k, v in out.items()}
     b = {k: v.copy() for k, v in out.items()}
     fast = move._fill_gaps(a, tsdf.res)
-    saved, move.numba = move.numba, None
-    try:
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(move, "numba", None)
         slow = move._fill_gaps(b, tsdf.res)
-    finally:
-        move.numba = saved
     assert fast == slow > 0
     for name in a:
         np.testing.assert_allclose(a[name], b[name], atol=1e-6, err_msg=name)
