@@ -201,6 +201,9 @@ class FrameAssembler:
             received=dict.fromkeys(self._roles, 0), accepted=dict.fromkeys(self._roles, 0)
         )
         self._colours: list[_Image] = []  # pending, sorted by stamp
+        # Colour images that came before the first CameraInfo, held up to max_wait_s: over a
+        # network the first image often beats its camera info by a few ms.
+        self._before_info: list[tuple[str, Any, int, float]] = []  # (topic, msg, stamp, arrival)
         self._depths: list[_Image] = []  # unused, sorted by stamp
         self._info: tuple[float, float, float, float, int, int] | None = None  # fx fy cx cy w h
         self._tf = TfBuffer()
@@ -257,7 +260,8 @@ class FrameAssembler:
             self._tick(now)
             frames = self._poll(now) if self._colours else []
             self._prune(now)  # after: how often poll is called must not change what it returns
-            self._stats.pending = len(self._colours)
+            self._expire_before_info(now)
+            self._stats.pending = len(self._colours) + len(self._before_info)
             return frames
 
     def _poll(self, now: float) -> list[Frame]:
@@ -308,7 +312,7 @@ class FrameAssembler:
             s = self._stats
             return LiveInputStats(
                 received=dict(s.received), accepted=dict(s.accepted), emitted=s.emitted, rejected=dict(s.rejected),
-                pending=len(self._colours), last_stamp_s=self.last_stamp_s, resets=s.resets,
+                pending=len(self._colours) + len(self._before_info), last_stamp_s=self.last_stamp_s, resets=s.resets,
             )  # fmt: skip
 
     @property
@@ -381,8 +385,9 @@ class FrameAssembler:
                 self._errors["camera_info"] = (
                     f"no sensor_msgs/CameraInfo on {self.cfg.camera_info_topic} after {now - since:.1f} s of colour images"
                 )
-            self._reject("no_camera_info", topic, f"{c.where}: no sensor_msgs/CameraInfo on {self.cfg.camera_info_topic} yet; "
-                         "colour images are dropped until it comes")  # fmt: skip
+            self._before_info.append((topic, msg, stamp, now))
+            self._expire_before_info(now)
+            self._stats.pending = len(self._colours) + len(self._before_info)
             return
         iw, ih = self._info[4], self._info[5]
         if (iw or c.size[0], ih or c.size[1]) != c.size:
@@ -447,6 +452,20 @@ class FrameAssembler:
         self._colour_without_info_since = None
         self._errors.pop("camera_info", None)
         self._accept(topic)
+        held, self._before_info = self._before_info, []
+        for c_topic, c_msg, c_stamp, c_arrival in held:  # arrival kept: they wait no longer than max_wait_s in all
+            self._on_colour(c_topic, c_msg, c_stamp, c_arrival)
+        self._stats.pending = len(self._colours)
+
+    def _expire_before_info(self, now: float) -> None:
+        """Refuse held colour images older than max_wait_s, or past max_pending, as no_camera_info."""
+        fresh = [now - h[3] <= self.cfg.max_wait_s for h in self._before_info]
+        n_keep = min(sum(fresh), self.max_pending)  # arrivals only grow: the fresh ones are the newest
+        for c_topic, _, c_stamp, _ in self._before_info[: len(self._before_info) - n_keep]:
+            self._reject("no_camera_info", c_topic, f"{c_topic} at stamp {c_stamp} ns: no sensor_msgs/CameraInfo on "
+                         f"{self.cfg.camera_info_topic} within max_wait_s={self.cfg.max_wait_s} s; "
+                         "colour images are dropped until it comes")  # fmt: skip
+        del self._before_info[: len(self._before_info) - n_keep]
 
     def _on_pose(self, topic: str, msg: Any, stamp: int, now: float) -> None:
         p = msg.pose if msg.__msgtype__ == "geometry_msgs/msg/PoseStamped" else msg.pose.pose

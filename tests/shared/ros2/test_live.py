@@ -480,17 +480,47 @@ def test_camera_info_never_comes(caplog: pytest.LogCaptureFixture) -> None:
         asm.on_message(topic, payload, now, ros_type)
         assert asm.poll(now) == []
         errors.append((now, asm.error))
+    last = max(e[0] for e in s.events)
     s.events.clear()
     with_error = [now for now, e in errors if e is not None]
     assert with_error and with_error[0] - first_colour <= s.cfg.camera_info_timeout_s + 0.05
     assert all(now - first_colour >= s.cfg.camera_info_timeout_s - 0.05 for now in with_error)
     assert asm.error.startswith(f"no sensor_msgs/CameraInfo on {s.cfg.camera_info_topic} after")
-    assert rejected(asm) == {"no_camera_info": 4 * FPS}
+    held = asm.stats.pending
+    assert 1 <= held <= asm.max_pending  # the newest colour images wait max_wait_s for it
+    assert rejected(asm) == {"no_camera_info": 4 * FPS - held}
+    assert_accounted(asm)
+    assert asm.poll(last + s.cfg.max_wait_s + 0.01) == []
+    assert rejected(asm) == {"no_camera_info": 4 * FPS} and asm.stats.pending == 0
     assert s.cfg.camera_info_topic in asm.silent_topics(4.2)
     # it comes after all: the error clears and frames flow
     s.add(4.2, s.cfg.camera_info_topic, camera_info(stamp_of(0)))
     asm.on_message(s.cfg.camera_info_topic, s.events[0][3], 4.2, None)
     assert asm.error is None
+    assert_accounted(asm)
+
+
+def test_colour_before_the_first_camera_info_waits_for_it() -> None:
+    """Over a network the first colour image often beats the first CameraInfo: it is held
+    (up to max_wait_s), not dropped, and becomes the first frame."""
+    s = scene(10, info=False)
+    first_colour = min(e[0] for e in s.events if e[2] == s.cfg.rgb_topic)
+    s.add(first_colour + 0.02, s.cfg.camera_info_topic, camera_info(stamp_of(0)))
+    asm = FrameAssembler(s.cfg)
+    frames = s.feed(asm)
+    assert frame_numbers(frames) == list(range(10))
+    for i, f in enumerate(frames):
+        check_frame(f, i)
+    assert rejected(asm) == {} and asm.error is None
+    assert_accounted(asm)
+    # Later than max_wait_s, the held image is given up, and named as such.
+    s = scene(10, info=False)
+    s.add(first_colour + s.cfg.max_wait_s + 0.02, s.cfg.camera_info_topic, camera_info(stamp_of(0)))
+    asm = FrameAssembler(s.cfg)
+    frames = s.feed(asm)
+    got = frame_numbers(frames)
+    assert got and got[0] > 0 and got == list(range(got[0], 10))
+    assert rejected(asm) == {"no_camera_info": got[0]}
     assert_accounted(asm)
 
 
