@@ -35,8 +35,10 @@ from shared.config.root import TrackGraphConfig
 from shared.graph.scene import GraphReplica
 from shared.messages.base import Envelope
 from shared.messages.frames import EndOfSequence, Frame, FrameAck, TrackedFrame
+from shared.messages.poses import PoseCorrection
 from shared.messages.rpc import QueryReply, QueryRequest
 from shared.ros2 import markers
+from shared.ros2.corrections import CorrectionBuilder, read_path
 from shared.ros2.live import FrameAssembler
 from shared.ros2.types import RosDecodeError, decode, msg_class
 from shared.ros2.wire import RosWire
@@ -125,6 +127,14 @@ class Ros2SourceSession(Session):
             topics += [(inp.tf_topic, TF_MESSAGE, False), (inp.tf_static_topic, TF_MESSAGE, True)]
         for topic, ros_type, latched in topics:
             self._subs.append(wire.subscribe(topic, ros_type, self._on_ros, transient_local=latched, depth=100 if latched else 10))
+        self.corrections: CorrectionBuilder | None = None
+        if inp.corrections != "none":
+            self.corrections = CorrectionBuilder(inp)
+            self.corrections_out = self.output("poses_correction", PoseCorrection)
+            self._odom_seen: int | None = None  # stamp of the newest world -> odom sample looked at
+            if inp.corrections == "path":
+                self._subs.append(wire.subscribe(inp.corrections_path_topic, PATH, self._on_path, depth=2))
+            self.book.figure("corrections", lambda: self.corrections.stats.as_dict())
         self.book.declare_input("ros2")
         self.book.figure("published", lambda: self.published)
         self.book.figure("dropped", lambda: self.dropped)
@@ -146,6 +156,40 @@ class Ros2SourceSession(Session):
         if self.on_input is not None:
             self.on_input()
 
+    def _on_path(self, topic: str, payload: bytes, ros_type: str | None) -> None:
+        """An optimised path from the SLAM: a correction, if it moves the map enough."""
+        inp, link = self.cfg.ros2.input, self.cfg.ros2.link
+        try:
+            msg = decode(payload, PATH, link.distro, max_bytes=link.max_payload_bytes)
+            stamps, poses, head = read_path(msg, inp.world_frame)
+        except (RosDecodeError, ValueError) as e:
+            self.corrections.stats.rejected += 1
+            self.book.count("poses_correction", "rejected")
+            log.warning("ROS 2 corrections: a nav_msgs/Path on %s refused (%s)", topic, e)
+            return
+        with self._lock:
+            c = self.corrections.from_path(stamps, poses, self.clock(), head)
+        self._send_correction(c)
+
+    def _poll_corrections(self, now: float) -> None:
+        """A correction held back by its minimum period, or one from a new map -> odom."""
+        inp = self.cfg.ros2.input
+        with self._lock:
+            c = self.corrections.due(now)
+            if c is None and inp.corrections == "map_odom" and self.corrections.frames:
+                stamp = self.assembler.newest_stamp(inp.odom_frame)
+                if stamp is not None and stamp != self._odom_seen:
+                    M = self.assembler.transform(inp.world_frame, inp.odom_frame, stamp)
+                    if M is not None:
+                        self._odom_seen = stamp
+                        c = self.corrections.from_map_odom(M, stamp, now)
+        self._send_correction(c)
+
+    def _send_correction(self, c: PoseCorrection | None) -> None:
+        if c is not None:
+            self.corrections_out.put(c)
+            self.book.count("poses_correction", "processed")
+
     def tick(self, now: float) -> float:
         """Send the synchronised frames the pipeline takes now; of those it holds, keep only
         the newest (latest wins, the others counted as dropped). Returns the seconds until
@@ -165,6 +209,8 @@ class Ros2SourceSession(Session):
         while self.waiting and not self.pacer.next_held(alive):
             frame = self.waiting.pop(0)
             t0 = self.clock()
+            if self.corrections is not None:
+                frame = self._placed(frame)
             self.pacer.send(frame.frame_index)
             self.frames_out.put(frame)
             self.published += 1
@@ -176,8 +222,21 @@ class Ros2SourceSession(Session):
             self.dropped += len(stale)
             log.debug("frames %s replaced by frame %d: the pipeline holds them (%s)", [f.frame_index for f in stale],
                       self.waiting[0].frame_index, ", ".join(sorted(self.pacer.next_held(alive))))  # fmt: skip
+        if self.corrections is not None:
+            self._poll_corrections(now)
         self.book.progress(done=self.published + self.dropped)
         return 0.01 if self.waiting else 0.05
+
+    def _placed(self, frame: Frame) -> Frame:
+        """The frame at its odometry pose, recorded for corrections (:meth:`CorrectionBuilder.place`)."""
+        origin = self.assembler.origin(frame.frame_index)
+        if origin is None:
+            return frame
+        with self._lock:
+            pose = self.corrections.place(frame.frame_index, origin[0], origin[1], frame.T_world_cam, self.assembler.transform)
+        if pose is None:
+            return frame
+        return frame.model_copy(update={"T_world_cam": pose})
 
     def finish(self) -> None:
         """The live stream is over (the source is stopping): an EndOfSequence, once, so

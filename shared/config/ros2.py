@@ -113,6 +113,34 @@ class Ros2InputConfig(StrictModel):
     camera_info_timeout_s: float = Field(3.0, gt=0)
     """Colour images for this long with no CameraInfo: an error in the status and the log
     naming ``camera_info_topic`` (images keep being counted until it comes)."""
+    corrections: Literal["none", "path", "map_odom"] = "none"
+    """Loop closures from the robot's SLAM, sent on as ``poses/correction`` (docs/ros2.md,
+    "Loop closures"). ``path``: a ``nav_msgs/Path`` of optimised poses on
+    ``corrections_path_topic`` (rtabmap's ``mapPath``, a pose-graph optimiser's output); each
+    pose states the frame nearest its stamp, the frames between follow by their odometry.
+    ``map_odom``: a change of the ``world_frame -> odom_frame`` transform (slam_toolbox,
+    AMCL) is spread over the frames placed since the previous change, from none of it at the
+    first to all of it at the newest, by distance travelled. ``none``: poses are final."""
+    corrections_path_topic: str = "/slam/optimized_path"
+    """``path``: the nav_msgs/Path topic, its poses in ``world_frame``."""
+    corrections_body_frame: str | None = None
+    """``path``: the TF frame whose poses the Path holds (``base_link``); the camera's offset
+    from it is taken from TF at each frame's stamp. None: the Path holds camera poses."""
+    odom_frame: str | None = "odom"
+    """With corrections: the odometry frame (REP 105) between ``world_frame`` and the camera.
+    Frames then go out at their odometry pose (the first frame's ``world -> odom`` times
+    ``odom -> camera``), and the SLAM's view of the map reaches the map as corrections only;
+    otherwise a map -> odom jump would count twice (fusion moves frames fused after a
+    correction by its fix). None (``path`` only): TF's poses of the camera in ``world_frame``
+    never jump (odometry published straight into it)."""
+    corrections_min_m: float = Field(0.02, ge=0)
+    """A correction goes out only when it moves some frame's camera by more than this (m)
+    or ``corrections_min_rad``: each one costs fusion a pass over the map (about 1 s for
+    900 frames), so the SLAM's small continual adjustments go out in batches."""
+    corrections_min_rad: float = Field(0.01, ge=0)
+    """The rotation counterpart of ``corrections_min_m`` (rad)."""
+    corrections_min_period_s: float = Field(1.0, ge=0)
+    """At most one correction per this many seconds; a newer one waiting goes out after it."""
     window_frames: int = Field(4, ge=1)
     """Frames the source may be ahead of the slowest stage that acknowledges them
     (``source.ack_from``); a newer synchronised frame then replaces the held one (latest
@@ -121,6 +149,11 @@ class Ros2InputConfig(StrictModel):
     @field_validator("rgb_topic", "depth_topic", "camera_info_topic", "tf_topic", "tf_static_topic")
     @classmethod
     def _topics(cls, v: str) -> str:
+        return _topic(v)
+
+    @field_validator("corrections_path_topic")
+    @classmethod
+    def _path_topic(cls, v: str) -> str:
         return _topic(v)
 
     @field_validator("pose_topic")
@@ -134,6 +167,12 @@ class Ros2InputConfig(StrictModel):
         names = [self.rgb_topic, self.depth_topic, self.camera_info_topic]
         if len(set(names)) != len(names):
             raise ValueError(f"rgb_topic, depth_topic and camera_info_topic must differ (got {', '.join(names)})")
+        if self.corrections == "map_odom" and self.odom_frame is None:
+            raise ValueError("corrections: 'map_odom' needs odom_frame (the frame map -> odom ends in)")
+        uses_tf = self.corrections == "map_odom" or self.corrections_body_frame is not None or self.odom_frame is not None
+        if self.corrections != "none" and self.pose_topic is not None and uses_tf:
+            raise ValueError(f"corrections: {self.corrections!r} with odom_frame or corrections_body_frame needs poses from "
+                             "TF (pose_topic None); with a pose_topic, use 'path' with odom_frame: null")  # fmt: skip
         return self
 
 

@@ -108,7 +108,7 @@ CONTRACT: tuple[KeyContract, ...] = (
         "poses_correction", f"{_R}/poses/correction", "pub/sub", PoseCorrection, None, ("source",),
         (Listener("fusion", "fifo", "held until it has fused apply_after_frame; journaled with the frames"),),
         "Corrected poses of past frames after a loop closure, from a SLAM back end (any client may publish; "
-        "the source replays a recorded one, source.corrections).",
+        "the source replays a recorded one, source.corrections, or sends a ROS 2 SLAM's, ros2.input.corrections).",
     ),
     KeyContract(
         "graph_delta", f"{_R}/graph/delta", "pub/sub", GraphDelta, None, ("fusion",),

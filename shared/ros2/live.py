@@ -78,6 +78,8 @@ CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
 WARN_PERIOD_S = 5.0
 """At most one warning line per reason in this many seconds (of ``now``)."""
+MAX_ORIGINS = 4096
+"""Emitted frames whose stamp and camera frame :meth:`FrameAssembler.origin` still answers."""
 RESET_AFTER_S = 1.0
 """A stream whose stamps keep going back for this long (of arrivals) means a new timeline."""
 RESET_MIN_MESSAGES = 3
@@ -201,6 +203,7 @@ class FrameAssembler:
             received=dict.fromkeys(self._roles, 0), accepted=dict.fromkeys(self._roles, 0)
         )
         self._colours: list[_Image] = []  # pending, sorted by stamp
+        self._origins: dict[int, tuple[int, str]] = {}  # frame index -> (colour stamp ns, camera frame), the newest
         # Colour images that came before the first CameraInfo, held up to max_wait_s: over a
         # network the first image often beats its camera info by a few ms.
         self._before_info: list[tuple[str, Any, int, float]] = []  # (topic, msg, stamp, arrival)
@@ -334,6 +337,30 @@ class FrameAssembler:
                 if now - (last if last is not None else t0) >= after_s:
                     out.append(topic)
             return out
+
+    def origin(self, frame_index: int) -> tuple[int, str] | None:
+        """Colour stamp (ns) and camera TF frame of an emitted frame (the newest MAX_ORIGINS)."""
+        with self._lock:
+            return self._origins.get(int(frame_index))
+
+    def newest_stamp(self, child: str) -> int | None:
+        """Stamp (ns) of the newest TF sample of ``child``'s dynamic link, None without one."""
+        with self._lock:
+            return self._tf.latest_stamp(normalize_frame(child))
+
+    def transform(self, target: str, source: str, stamp_ns: int | None) -> np.ndarray | None:
+        """``T_target_source`` from the TF buffer at ``stamp_ns`` (None: at the newest stamp
+        every dynamic link on the way has), or None when TF cannot give it there."""
+        with self._lock:
+            try:
+                if stamp_ns is None:
+                    stamps = [self._tf.latest_stamp(e) for e in self._tf.dynamic_edges(target, source)]
+                    if any(s is None for s in stamps):
+                        return None
+                    stamp_ns = min(stamps, default=0)
+                return self._tf.lookup(target, source, stamp_ns, self._tol_ns, self._tol_ns)
+            except LookupError:
+                return None
 
     @property
     def error(self) -> str | None:
@@ -696,6 +723,9 @@ class FrameAssembler:
             self._stats.rejected["bad_payload"] += 1
             self._warn("bad_payload", f"{c.where}: not a valid frame ({e})")
             return None
+        self._origins[self._next_index] = (c.stamp_ns, c.frame_id)
+        if len(self._origins) > MAX_ORIGINS:
+            del self._origins[next(iter(self._origins))]
         self._next_index += 1
         self._last_emitted_ns = c.stamp_ns
         self._stats.emitted += 1
