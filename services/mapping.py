@@ -32,6 +32,9 @@ from shared.io import atomic_write_text
 
 log = logging.getLogger(__name__)
 
+OBSERVATIONS_SCRATCH = ".observations.wal"
+"""The frames ``fusion.refuse`` keeps while a map is made, deleted when it is done."""
+
 __all__ = ["SEGMENT_IDS_FILE", "export_map", "ply_bytes", "prepare_config", "run_map", "run_summary", "segment_embedding"]
 
 FINISH_MARGIN_S = 5.0
@@ -112,7 +115,8 @@ def run_map(
             # rooms are named in the space of its galleries.
             _serve_embed(bus, tracker_core.encoder, cfg.keyframe_vl.embed_cache_size)
         tracker = TrackerSession(bus, pipeline_cfg, tracker_core, wait_for_masks=True)
-        fusion = FusionSession(bus, pipeline_cfg, FusionCore(cfg.fusion, device=cfg.tracker.device))
+        # Frames kept for a re-fusion after corrections (fusion.refuse) go to a file, not to memory.
+        fusion = FusionSession(bus, pipeline_cfg, FusionCore(cfg.fusion, device=cfg.tracker.device), observations=out / OBSERVATIONS_SCRATCH)
         # Before the first frame, so every update names its rooms (in one process vl/embed
         # answers at once; without keyframe_vl the rooms keep features and no names).
         fusion.fetch_room_labels()
@@ -138,6 +142,7 @@ def run_map(
         for s in reversed(sessions):
             s.close()
         bus.close()
+        (out / OBSERVATIONS_SCRATCH).unlink(missing_ok=True)
     stats = source.stats
     if stats.planned and stats.rejected == stats.planned:
         raise DatasetError(f"{seq_dir}: no frame could be read; the first error: {stats.rejected_errors[0]}")

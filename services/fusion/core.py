@@ -17,6 +17,7 @@ import numpy as np
 
 from services.fusion.hypotheses import confidence
 from services.fusion.move import warm_up
+from services.fusion.observations import ObservationLog
 from services.fusion.poses import CorrectionError, PoseBook
 from services.fusion.roomnames import (
     VIEW_SAMPLE_STRIDE,
@@ -57,9 +58,25 @@ class CorrectionCounters:
     """Time the newest correction took to move the map (TSDF, segments, surface, views)."""
     seconds_update: float = 0.0
     """Time of the graph update after it (mesh, segments and re-identification, places, rooms)."""
+    refused_frames: int = 0
+    """Frames the last re-fusion (``fusion.refuse``) fused again at their corrected poses."""
+    seconds_refuse: float = 0.0
+    """Time of that re-fusion, graph update included."""
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
+
+
+@dataclass
+class RefuseStats:
+    """What :meth:`FusionCore.refuse` did."""
+
+    frames: int
+    seconds_fuse: float
+    seconds_update: float
+    kept_mb: float
+    """Size of the kept observations (compressed)."""
+    delta: GraphDelta | None
 
 
 @dataclass
@@ -107,6 +124,10 @@ class FusionCore:
         self._moved: set[int] = set()
         """Segments a correction moved, reported changed by the next update."""
         self.corrections = CorrectionCounters()
+        self.observations: ObservationLog | None = None
+        """Every fused frame, kept to re-fuse the map at its corrected poses (:meth:`refuse`);
+        None: not kept (``fusion.refuse`` off). The session gives it a file when it has a store."""
+        self._refused_epoch = 0
         self.frames = 0
         self.updates = 0
         self.last_frame_index = -1
@@ -114,9 +135,8 @@ class FusionCore:
 
     # ------------------------------------------------------------------ inputs
 
-    def add_frame(self, tf: TrackedFrame) -> GraphDelta | None:
-        """Fuse one tracked frame; every N frames also update the graph and return its delta."""
-        fr = tf.frame
+    def _votes(self, tf: TrackedFrame) -> tuple[Annotated[np.ndarray, "(H, W) int32"], dict[int, float]]:
+        """The track label each pixel votes for, and each track's gamma (eq. 6)."""
         tsdf = self.cfg.tsdf
         gamma = {o.track_id: confidence(o.keyframe, o.frames_since_keyframe, tsdf.alpha_p, tsdf.beta_p) for o in tf.tracks}
         ids = tf.track_ids
@@ -124,9 +144,17 @@ class FusionCore:
         # confident of its track; ``min_label_confidence: 0`` fuses every pixel as the paper does.
         if tf.confidence is not None and tsdf.min_label_confidence > 0:
             ids = np.where(tf.confidence >= round(255 * tsdf.min_label_confidence), ids, -1)
+        return ids, gamma
+
+    def add_frame(self, tf: TrackedFrame) -> GraphDelta | None:
+        """Fuse one tracked frame; every N frames also update the graph and return its delta."""
+        fr = tf.frame
+        ids, gamma = self._votes(tf)
         # the pose the frame came with, as the newest pose correction places it
         T = self.book.add(int(fr.frame_index), fr.T_world_cam)
         stats = self.tsdf.integrate(fr.depth_m(), fr.rgb, fr.intrinsics, T, ids, gamma, frame_index=int(fr.frame_index))
+        if self.observations is not None:
+            self.observations.append(tf)
         for tid, w in stats.displaced.items():
             self._track(tid).displaced_weight += float(w)
         for o in tf.tracks:
@@ -232,7 +260,11 @@ class FusionCore:
         return describe_rooms(rooms, segments, shares, views, self.room_vocabulary, self.cfg.graph.room_view_weight, previous)
 
     def finish(self) -> GraphDelta:
-        """A last update after the final frame, so nothing fused is left out of the graph."""
+        """A last update after the final frame, so nothing fused is left out of the graph;
+        after pose corrections, with the kept frames re-fused first (:meth:`refuse`)."""
+        refused = self.refuse()
+        if refused is not None and refused.delta is not None:
+            return refused.delta
         return self.update()
 
     def mesh_chunk(self) -> MeshChunk:
@@ -341,6 +373,49 @@ class FusionCore:
         )  # fmt: skip
         return CorrectionOutcome(c.correction_id, "applied", delta, len(motion), motion.max_shift_m, t_move, t_update)
 
+    def refuse(self) -> RefuseStats | None:
+        """Re-fuse every kept frame at its current estimate into a fresh TSDF (the active
+        window moving along the corrected trajectory as it did), then rebuild every segment's
+        geometry and the surface sample from the whole re-fused map, and update the graph.
+        Segment ids stay: the tracks, and so the segments they belong to, are unchanged.
+
+        Undoes what moving the map cannot: the blur of surfaces fused from frames that had
+        drifted apart before a correction came. None (nothing done) when no correction was
+        applied since the last re-fusion, or when the log lacks frames the map fused."""
+        if self.observations is None or self.book.epoch == self._refused_epoch or not self.frames:
+            return None
+        if not self.observations.covers(self.book.frames):
+            log.warning("re-fusion skipped: the kept observations hold %d frames, the map fused %d (a resume from "
+                        "before they were kept?); the map stays as the corrections moved it",
+                        len(self.observations), len(self.book.frames))  # fmt: skip
+            return None
+        t0 = time.perf_counter()
+        old = self.tsdf
+        fresh = HypothesisTSDF(self.cfg.tsdf, device=old.device_name.lower(), backend=old.backend, mesh_weight_threshold=old.mesh_weight_threshold)
+        fresh.epoch, fresh.epoch_motion = self.book.epoch, self.book.epoch_motion
+        for tf in self.observations:
+            fr = tf.frame
+            ids, gamma = self._votes(tf)
+            T = self.book.estimate(int(fr.frame_index))
+            fresh.integrate(fr.depth_m(), fr.rgb, fr.intrinsics, T, ids, gamma, frame_index=int(fr.frame_index))
+            fresh.update_window(T[:3, 3])
+        self.tsdf = fresh
+        t_fuse = time.perf_counter() - t0
+        t1 = time.perf_counter()
+        whole = _concat_meshes(fresh.extract_mesh(), fresh.extract_archived_mesh())
+        self._moved |= set(self.segments.replace_geometry(whole))
+        self.surface.clear()
+        self.surface.add(whole.vertices, whole.vertex_anchors())
+        delta = self.update()
+        self._refused_epoch = self.book.epoch
+        stats = RefuseStats(frames=len(self.observations), seconds_fuse=round(t_fuse, 3), seconds_update=round(time.perf_counter() - t1, 3),
+                            kept_mb=round(self.observations.nbytes / 2**20, 1), delta=delta)  # fmt: skip
+        self.corrections.refused_frames = stats.frames
+        self.corrections.seconds_refuse = round(t_fuse + stats.seconds_update, 3)
+        log.info("re-fused %d frames at their corrected poses: %.2f s to fuse, %.2f s to rebuild segments and graph; "
+                 "observations kept: %.1f MB", stats.frames, t_fuse, stats.seconds_update, stats.kept_mb)  # fmt: skip
+        return stats
+
     def surface_points(self) -> Annotated[np.ndarray, "(N, 3) float32"]:
         """One point per 5 cm cell of everything ever meshed: places and rooms must cover the
         whole map, not only the active window."""
@@ -438,6 +513,20 @@ class FusionCore:
         self.graph = SceneGraph.from_snapshot(snapshot)
         self.hierarchy.restore(snapshot.places, snapshot.rooms)
         self.mesh = None
+
+
+def _concat_meshes(a: HypothesisMesh, b: HypothesisMesh) -> HypothesisMesh:
+    """One mesh of two (vertex indices of ``b``'s faces shifted)."""
+    if len(b) == 0:
+        return a
+    if len(a) == 0:
+        return b
+    return HypothesisMesh(
+        np.concatenate([a.vertices, b.vertices]), np.concatenate([a.colors, b.colors]),
+        np.concatenate([a.faces, b.faces + len(a)]).astype(np.int32),
+        np.concatenate([a.hyp_ids, b.hyp_ids]), np.concatenate([a.hyp_weights, b.hyp_weights]),
+        np.concatenate([a.vertex_anchors(), b.vertex_anchors()]),
+    )  # fmt: skip
 
 
 def _seen_points(fr, T: Annotated[np.ndarray, "(4, 4) world-from-camera"]) -> Annotated[np.ndarray, "(N, 3) float32 world"]:

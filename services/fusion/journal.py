@@ -99,7 +99,8 @@ class ReplayStats:
     """One line per drop, naming the file and byte offset."""
 
 
-def _encode_record(kind: str, body: BaseModel, level: int) -> bytes:
+def encode_record(kind: str, body: BaseModel, level: int) -> bytes:
+    """One record: header (magic, length, CRC-32) and the zstd-compressed ``[kind, message]``."""
     import zstandard
 
     msg = encode(body, robot_id="journal", seq=0, stamp=0.0, cfg=_CODEC)
@@ -109,8 +110,8 @@ def _encode_record(kind: str, body: BaseModel, level: int) -> bytes:
     return HEADER.pack(RECORD_MAGIC, len(payload), zlib.crc32(payload)) + payload
 
 
-def _decode_payload(payload: bytes) -> Record:
-    """Raises ValueError naming what is wrong."""
+def decode_payload(payload: bytes) -> Record:
+    """The record a payload (after its header) holds; raises ValueError naming what is wrong."""
     import zstandard
 
     try:
@@ -177,7 +178,7 @@ def read_file(path: Path, stats: ReplayStats, *, repair: bool = False) -> Iterat
                 pos = end
                 continue
             try:
-                rec = _decode_payload(payload)
+                rec = decode_payload(payload)
             except ValueError as exc:
                 _torn(stats, path, pos, end - pos, str(exc))
                 pos = end
@@ -288,7 +289,7 @@ class Journal:
         if self._fd is None:
             raise JournalError(f"journal {self.root}: not open")
         t0 = time.perf_counter()
-        rec = _encode_record(kind, body, self.cfg.zstd_level)
+        rec = encode_record(kind, body, self.cfg.zstd_level)
         try:
             view = memoryview(rec)
             while view:

@@ -681,6 +681,34 @@ class SegmentLayer:
                 moved.append(seg.id)
         return moved
 
+    def replace_geometry(self, mesh: HypothesisMesh) -> list[int]:
+        """Every segment's stored geometry replaced by the vertices of ``mesh`` (the whole map,
+        re-fused) whose winning track is one of its tracks; returns the ids that got geometry.
+        A segment the mesh has no vertex of keeps its own. Ids, tracks and galleries stay;
+        the next :meth:`update` marks which segments the active window holds."""
+        win = mesh.winners()
+        seg_of_track = {int(t): s for t, s in self._track_segment.items()}
+        tracks, inverse = np.unique(win, return_inverse=True)
+        seg = np.array([seg_of_track.get(int(t), -1) if t >= 0 else -1 for t in tracks], np.int64)[inverse] if len(win) else np.zeros(0, np.int64)
+        anchors = mesh.vertex_anchors()
+        order = np.argsort(seg, kind="stable")
+        ids, starts = np.unique(seg[order], return_index=True)
+        ends = np.append(starts[1:], len(order))
+        done = []
+        for sid, a, b in zip(ids.tolist(), starts.tolist(), ends.tolist(), strict=True):
+            if sid < 0 or sid not in self.segments:
+                continue
+            rows = order[a:b]
+            sg = self.segments[sid]
+            sg.positions = mesh.vertices[rows].astype(np.float32)
+            sg.anchors = anchors[rows].astype(np.int32)
+            sg.vertex_ids = _no_vertices()
+            sg.active = False
+            sg.refresh_bounds()
+            self._hist_trees.pop(sid, None)
+            done.append(int(sid))
+        return done
+
     # -- save / resume ------------------------------------------------------------------------
 
     def state_dict(self) -> dict:

@@ -32,6 +32,8 @@ from pathlib import Path
 import numpy as np
 
 from services.fusion.journal import FIRST, Journal, JournalError, Record
+from services.fusion.observations import FILE_NAME as OBSERVATIONS_FILE
+from services.fusion.observations import ObservationLog
 from services.fusion.poses import CorrectionError
 from services.fusion.reorder import InOrder
 from shared.config.root import TrackGraphConfig
@@ -77,6 +79,12 @@ WATERMARK_S = 1.0
 announces its epoch even while the source waits, and late feature messages get acknowledged."""
 
 
+def refuse_wanted(cfg: TrackGraphConfig) -> bool:
+    """``fusion.refuse``: ``on``, or ``auto`` with corrections configured for this run."""
+    mode = cfg.fusion.refuse
+    return mode == "on" or (mode == "auto" and (bool(cfg.source.corrections) or cfg.ros2.input.corrections != "none"))
+
+
 class FusionSession(Session):
     """A :class:`~services.fusion.core.FusionCore` on a bus, and optionally on disk in ``out``."""
 
@@ -84,6 +92,7 @@ class FusionSession(Session):
 
     def __init__(
         self, bus: Bus, cfg: TrackGraphConfig, core, *, store: MapStore | None = None, out: Path | None = None,
+        observations: Path | None = None,
         resume: bool = False, clock: Callable[[], float] = time.monotonic, inbox: Inbox | None = None,
         epoch: int | None = None,
     ) -> None:  # fmt: skip
@@ -132,6 +141,9 @@ class FusionSession(Session):
             self.resumed_from = str(state.path)
             base = state.path.name
             log.info("resumed from %s at frame %d (graph %d)", state.path, core.last_frame_index, core.graph.graph_seq)
+        if refuse_wanted(cfg):
+            path = store.root / OBSERVATIONS_FILE if store is not None else observations
+            core.observations = ObservationLog(path, cfg.fusion.journal.zstd_level, fresh=not (resume and self.resumed_from))
         self.frames = 0
         """Frames this process fused (``core.frames`` counts those of the whole map)."""
         self.duplicates = 0
@@ -556,3 +568,6 @@ class FusionSession(Session):
             self.save()
         if self.journal is not None:
             self.journal.close()
+        observations = getattr(self.core, "observations", None)  # test doubles of the core have none
+        if observations is not None:
+            observations.close()

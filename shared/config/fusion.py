@@ -177,6 +177,16 @@ class FusionConfig(StrictModel):
     """Mesh chunks ride in every Nth graph delta; segments ride in every one."""
     snapshot_interval_s: float = Field(30.0, gt=0)
     """Seconds between on-disk snapshots of the graph."""
+    refuse: Literal["auto", "on", "off"] = "auto"
+    """Not in the paper (docs/architecture.md, "Pose corrections"): keep every fused frame
+    (compressed, beside the snapshots when there is a map store) and, when the sequence ends
+    after pose corrections, fuse them again at their corrected poses, which undoes the blur
+    of surfaces fused from frames that had drifted apart (moving the map cannot). ``auto``:
+    on when corrections are configured (``source.corrections``, ``trackgraph map
+    --corrections``, ``ros2.input.corrections``); ``on`` for a back end that publishes
+    corrections itself. It costs the kept frames (0.5 MB each at 640x480, on disk beside the
+    snapshots, or in a scratch file of ``trackgraph map``) and one pass over them at the end
+    (23 s for the 600 frames of ``revisit`` on this 2-core machine)."""
     journal: JournalConfig = Field(default_factory=JournalConfig)
     """The write-ahead journal between snapshots."""
     reorder_wait_s: float = Field(10.0, gt=0)

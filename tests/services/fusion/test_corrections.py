@@ -18,22 +18,13 @@ from shared.config import TrackGraphConfig
 from shared.datasets import open_sequence
 from shared.messages.poses import PoseCorrection
 from shared.runtime.bus import InProcessBus
+from tests.services.fusion.conftest import FRAMES
 
 pytestmark = pytest.mark.slow
 
 GT_TRACKS = {"keyframe_vl": {"vl": {"backend": "simulated"}}, "tracker": {"mode": "ground_truth"}}
-FRAMES = 150
 CLOSURE = 40
 """The frame of the (made-up) loop closure: the back end sends the true poses up to it."""
-
-
-@pytest.fixture(scope="module")
-def drifting(tmp_path_factory):
-    from shared.synth import run_synth
-
-    out = tmp_path_factory.mktemp("synth") / "small"
-    run_synth("small", 0, out, {"camera": {"width": 160, "height": 120, "frames": FRAMES}}, drift=0.1)
-    return out
 
 
 def _true(seq) -> np.ndarray:
