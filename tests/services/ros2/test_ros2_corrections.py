@@ -82,17 +82,21 @@ def send(wire, cfg, i: int, map_odom_x: float) -> None:
     wire.publisher(inp.rgb_topic, "sensor_msgs/msg/Image").put(image(st, i))
 
 
+def walk(s, bus, wire, cfg, clock, frames, map_odom_x: float = 0.0, settle: bool = True) -> None:
+    """Frames ``frames`` sent and taken; ``settle``: then long enough for the last to be final."""
+    for i in frames:
+        send(wire, cfg, i, map_odom_x)
+        step(s, bus, clock)
+    if settle:
+        step(s, bus, clock, 1.0)
+
+
 def test_a_map_odom_jump_goes_out_as_a_correction_and_frames_keep_their_odometry_pose(clock):
     s, bus, wire, cfg, frames, corrections = rig(clock, "map_odom")
     try:
-        for i in range(10):
-            send(wire, cfg, i, 0.0)
-            step(s, bus, clock)
+        walk(s, bus, wire, cfg, clock, range(10), settle=False)
         assert corrections == []
-        for i in range(10, 14):  # the SLAM closes a loop: map -> odom jumps 25 cm
-            send(wire, cfg, i, 0.25)
-            step(s, bus, clock)
-        step(s, bus, clock, 1.0)
+        walk(s, bus, wire, cfg, clock, range(10, 14), 0.25)  # the SLAM closes a loop: map -> odom jumps 25 cm
         assert [f.frame_index for f in frames] == list(range(14))
         # Every frame at its odometry pose (map -> odom of the first frame): the jump is not in them.
         for f in frames:
@@ -104,9 +108,8 @@ def test_a_map_odom_jump_goes_out_as_a_correction_and_frames_keep_their_odometry
         last = int(c.frames[-1])
         assert c.apply_after_frame == c.frame_index == last >= 9
         np.testing.assert_allclose(c.poses[-1][:3, 3], [0.1 * last + 0.25, 0.0, 2.0], atol=1e-6)
-        np.testing.assert_allclose(
-            c.poses[0][:3, 3], [0.0, 0.0, 2.0], atol=1e-6
-        )  # the first frame keeps its pose
+        # the first frame keeps its pose
+        np.testing.assert_allclose(c.poses[0][:3, 3], [0.0, 0.0, 2.0], atol=1e-6)
         rep = s.book.report().figures["corrections"]
         assert rep["sent"] == 1 and rep["last_id"] == c.correction_id and rep["unplaced"] == 0
     finally:
@@ -116,15 +119,11 @@ def test_a_map_odom_jump_goes_out_as_a_correction_and_frames_keep_their_odometry
 def test_an_optimised_path_goes_out_as_a_correction_and_a_bad_one_is_counted(clock):
     s, bus, wire, cfg, frames, corrections = rig(clock, "path")
     try:
-        for i in range(10):
-            send(wire, cfg, i, 0.0)
-            step(s, bus, clock)
-        step(s, bus, clock, 1.0)
+        walk(s, bus, wire, cfg, clock, range(10))
         assert len(frames) == 10
         pub = wire.publisher(cfg.ros2.input.corrections_path_topic, "nav_msgs/msg/Path")
-        pub.put(
-            path([(T0_NS + i * DT, 0.1 * i + 0.05 * i) for i in (0, 4, 9)])
-        )  # the SLAM stretches the walk
+        # the SLAM stretches the walk
+        pub.put(path([(T0_NS + i * DT, 0.1 * i + 0.05 * i) for i in (0, 4, 9)]))
         step(s, bus, clock)
         assert len(corrections) == 1
         c = corrections[0]
@@ -143,10 +142,7 @@ def test_an_optimised_path_goes_out_as_a_correction_and_a_bad_one_is_counted(clo
 def test_without_corrections_nothing_is_subscribed_or_changed(clock):
     s, bus, wire, cfg, frames, corrections = rig(clock, "none")
     try:
-        for i in range(3):
-            send(wire, cfg, i, 0.5)
-            step(s, bus, clock)
-        step(s, bus, clock, 1.0)
+        walk(s, bus, wire, cfg, clock, range(3), 0.5)
         assert corrections == [] and "corrections" not in s.book.report().figures
         np.testing.assert_allclose(
             frames[2].T_world_cam[:3, 3], [0.7, 0.0, 2.0], atol=1e-6
