@@ -23,7 +23,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from shared.config.tracker import DenseFeaturesConfig, PropagationConfig  # noqa: E402
+from shared.config.tracker import PropagationConfig, dense_features_config  # noqa: E402
 
 OUT = Path(__file__).resolve().parent / "out"
 
@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     rgb = np.random.default_rng(0).integers(0, 256, (680, 1200, 3), dtype=np.uint8)
     for short_side in (720, 480):
         for fp16 in ([False, True] if args.device.startswith("cuda") else [False]):
-            cfg = DenseFeaturesConfig(backend="dinov3", loader="timm", weights=str(weights), short_side=short_side)
+            cfg = dense_features_config(backend="dinov3", loader="timm", weights=str(weights), short_side=short_side)
             feats = make_dense_features(cfg, device=args.device, fp16=fp16)
             out = feats(rgb)
             sync = torch.cuda.synchronize if args.device.startswith("cuda") else (lambda: None)

@@ -34,7 +34,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from shared.codec import encode  # noqa: E402
 from shared.config import CodecConfig  # noqa: E402
-from shared.config.keyframe_vl import SegmenterConfig, VLEncoderConfig  # noqa: E402
+from shared.config.keyframe_vl import (  # noqa: E402
+    SegmenterBackend,
+    VLEncoderBackend,
+    segmenter_config,
+    vl_config,
+)
 from shared.datasets.ground_truth import StaticGroundTruth  # noqa: E402
 from shared.messages import KeyframeMasks, MaskFeatures  # noqa: E402
 from shared.perception import KeyframeImage, Masks  # noqa: E402
@@ -87,7 +92,7 @@ def _sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def run_case(name: str, seg_cfg: SegmenterConfig, vl_cfg: VLEncoderConfig, imgs: list[Keyframe], device: str, fp16: bool, warmup: int) -> dict:
+def run_case(name: str, seg_cfg: SegmenterBackend, vl_cfg: VLEncoderBackend, imgs: list[Keyframe], device: str, fp16: bool, warmup: int) -> dict:
     from services.keyframe_vl.encoders import make_vl_encoder
     from services.keyframe_vl.segmenters import make_segmenter
     from services.keyframe_vl.segmenters.simulated import SimulatedSegmenter
@@ -155,20 +160,20 @@ def main(argv: list[str] | None = None) -> int:
     cases = []
     if not args.paper:
         small = frames(seq, n + warm, (320, 240))
-        cases.append(("classical", SegmenterConfig(backend="classical"), VLEncoderConfig(backend="simulated", ground_truth=gt), small))
-        cases.append(("simulated", SegmenterConfig(backend="simulated"), VLEncoderConfig(backend="simulated", ground_truth=gt), small))
+        cases.append(("classical", segmenter_config(backend="classical"), vl_config(backend="simulated", ground_truth=gt), small))
+        cases.append(("simulated", segmenter_config(backend="simulated"), vl_config(backend="simulated", ground_truth=gt), small))
         vga = frames(seq, n + warm, (640, 480))
         fastsam = save_random_fastsam(tmp / "FastSAM-s.pt", "s")
         b32 = save_random_openclip(tmp / "vit_b32.bin", "ViT-B-32")
-        cases.append(("fastsam-s + ViT-B-32 @640x480", SegmenterConfig(backend="fastsam", weights=str(fastsam), imgsz=640), VLEncoderConfig(backend="openclip", model="ViT-B-32", weights=str(b32)), vga))
+        cases.append(("fastsam-s + ViT-B-32 @640x480", segmenter_config(backend="fastsam", weights=str(fastsam), imgsz=640), vl_config(backend="openclip", model="ViT-B-32", weights=str(b32)), vga))
         if not args.quick:
             fx = save_random_fastsam(tmp / "FastSAM-x.pt", "x")
-            cases.append(("fastsam-x + ViT-B-32 @640x480", SegmenterConfig(backend="fastsam", weights=str(fx), imgsz=1024), VLEncoderConfig(backend="openclip", model="ViT-B-32", weights=str(b32)), vga))
+            cases.append(("fastsam-x + ViT-B-32 @640x480", segmenter_config(backend="fastsam", weights=str(fx), imgsz=1024), vl_config(backend="openclip", model="ViT-B-32", weights=str(b32)), vga))
     else:
         replica = frames(seq, n + warm, (1200, 680))
         fx = save_random_fastsam(tmp / "FastSAM-x.pt", "x")
         h14 = save_random_openclip(tmp / "vit_h14.bin", "ViT-H-14")
-        cases.append(("paper: fastsam-x + ViT-H-14 @1200x680", SegmenterConfig(backend="fastsam", weights=str(fx), imgsz=1024), VLEncoderConfig(backend="openclip", model="ViT-H-14", weights=str(h14)), replica))
+        cases.append(("paper: fastsam-x + ViT-H-14 @1200x680", segmenter_config(backend="fastsam", weights=str(fx), imgsz=1024), vl_config(backend="openclip", model="ViT-H-14", weights=str(h14)), replica))
     rows = []
     for name, seg_cfg, vl_cfg, imgs in cases:
         log.info("case %s", name)

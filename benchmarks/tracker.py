@@ -66,7 +66,7 @@ from services.models.random_weights import save_random_fastsam  # noqa: E402
 from services.tracker.core import TrackerCore  # noqa: E402
 from services.tracker.features.dinov3 import Dinov3Features, PatchTokens  # noqa: E402
 from services.tracker.propagation import propagate_labels, upsample_labels  # noqa: E402
-from shared.config.keyframe_vl import SegmenterConfig  # noqa: E402
+from shared.config.keyframe_vl import segmenter_config  # noqa: E402
 from shared.config.tracker import PropagationConfig, TrackerConfig  # noqa: E402
 from shared.logs import setup_logging  # noqa: E402
 from shared.perception import KeyframeImage, Segmenter  # noqa: E402
@@ -96,7 +96,7 @@ def dinov3_vits16plus(short_side: int, device: str = "cpu") -> Dinov3Features:
 
 def fastsam_segmenter(weights: Path, imgsz: int, max_masks: int) -> Segmenter:
     """The ``fastsam`` backend as keyframe_vl builds it, on the CPU in float32."""
-    cfg = SegmenterConfig(backend="fastsam", weights=str(weights), imgsz=imgsz, conf=0.5, max_masks=max_masks)
+    cfg = segmenter_config(backend="fastsam", weights=str(weights), imgsz=imgsz, conf=0.5, max_masks=max_masks)
     return make_segmenter(cfg, device="cpu", fp16=False)
 
 

@@ -17,7 +17,7 @@ from typing import Any
 
 from shared.messages.base import Envelope
 from shared.messages.status import ServiceStatus
-from shared.topics import SERVICES, Topics
+from shared.topics import Topics, service_names
 
 STALE_S = 3.0
 """A report older than this is shown dimmed: the service has stopped reporting (a report
@@ -173,7 +173,7 @@ def report_summary(st: ServiceStatus) -> dict[str, Any]:
 
 def ordered(names: list[str] | set[str]) -> list[str]:
     """Services in pipeline order (source first), unknown names after them."""
-    rank = {n: i for i, n in enumerate(SERVICES)}
+    rank = {n: i for i, n in enumerate(service_names())}
     return sorted(names, key=lambda n: (rank.get(n, len(rank)), n))
 
 

@@ -19,46 +19,16 @@ from shared.runtime.lifeline import install_stop_handlers, start_lifeline
 
 log = logging.getLogger(__name__)
 
-SERVICES = ("keyframe_vl", "tracker", "fusion", "query", "viewer", "ros2")
-
-
 def build_node(service: str, cfg: TrackGraphConfig, *, out: Path | None = None, resume: bool = False):
-    if service == "keyframe_vl":
-        from services.keyframe_vl.node import KeyframeVLNode
+    """The node of ``service`` as its registry entry builds it (shared/registry.py ``SERVICES``)."""
+    from shared.registry import SERVICES, load_object
 
-        # Models load in start(), once the status reports (state "starting") go out.
-        return KeyframeVLNode(cfg, start=False)
-    if service == "tracker":
-        from services.tracker.node import TrackerNode
-
-        return TrackerNode(cfg)
-    if service == "fusion":
-        from services.fusion.node import FusionNode
-
-        if out is None:
-            raise ValueError("fusion needs --out MAP_DIR for its snapshots and the final map")
-        return FusionNode(cfg, out, resume=resume)
-    if service == "query":
-        from threadpoolctl import threadpool_limits
-
-        from services.query.node import QueryNode
-
-        # Each query is one small matrix-vector product, answered on several worker threads:
-        # a multi-threaded BLAS only spins against them (9 ms against 1.3 ms for 500 segments
-        # of 1024-d galleries on 2 busy cores).
-        threadpool_limits(1, user_api="blas")
-        return QueryNode(cfg)
-    if service == "viewer":
-        from services.viewer.node import ViewerNode
-
-        if out is None:
-            raise ValueError("the viewer needs --out FILE.rrd for its recording")
-        return ViewerNode(cfg, out)
-    if service == "ros2":
-        from services.ros2.node import Ros2BridgeNode
-
-        return Ros2BridgeNode(cfg)
-    raise ValueError(f"unknown service {service!r}; expected one of {', '.join(SERVICES)}")
+    entry = SERVICES.get(service)
+    if not entry.servable:
+        raise ValueError(f"{service} is not run by `trackgraph serve`: {entry.summary}")
+    if entry.out is not None and out is None:
+        raise ValueError(entry.out_help or f"{service} needs --out")
+    return load_object(entry.node)(cfg, out=out, resume=resume)
 
 
 def serve(

@@ -8,8 +8,13 @@ from shared.config.root import ROBOT_ID
 
 PREFIX = "trackgraph"
 
-SERVICES = ("source", "tracker", "keyframe_vl", "fusion", "query", "viewer", "ros2")
-"""Services that announce themselves with a liveliness token."""
+
+
+def service_names() -> tuple[str, ...]:
+    """Services that announce themselves with a liveliness token: the services registry's."""
+    from shared.registry import SERVICES
+
+    return SERVICES.names()
 
 
 @dataclass(frozen=True)
@@ -84,14 +89,12 @@ class Topics:
 
     def alive(self, service: str) -> str:
         """Liveliness token key of one service."""
-        if service not in SERVICES:
-            raise ValueError(f"unknown service {service!r}; expected one of {', '.join(SERVICES)}")
+        _check_service(service)
         return f"{self.root}/alive/{service}"
 
     def status(self, service: str) -> str:
         """Key of one service's :class:`~shared.messages.status.ServiceStatus` reports."""
-        if service not in SERVICES:
-            raise ValueError(f"unknown service {service!r}; expected one of {', '.join(SERVICES)}")
+        _check_service(service)
         return f"{self.root}/status/{service}"
 
     @property
@@ -114,3 +117,10 @@ class Topics:
 def service_of_alive_key(key: str) -> str:
     """The service name at the end of an ``alive/<service>`` key."""
     return key.rsplit("/", 1)[-1]
+
+
+def _check_service(service: str) -> None:
+    from shared.registry import SERVICES
+
+    if service not in SERVICES:
+        raise ValueError(SERVICES.unknown(service))

@@ -49,9 +49,11 @@ def run_summary(cfg: TrackGraphConfig, fusion, snapshot, *, frames: int, seconds
             "vl_encoder": cfg.keyframe_vl.vl.backend,
         },
         "precision": {
-            "dense_features": cfg.tracker.features.precision,
-            "segmenter": cfg.keyframe_vl.segmenter.precision,
-            "vl_encoder": cfg.keyframe_vl.vl.precision,
+            # Backends without a network (classical, simulated) or running an export in its
+            # own precision (the ONNX ones) have no precision setting.
+            "dense_features": getattr(cfg.tracker.features, "precision", None),
+            "segmenter": getattr(cfg.keyframe_vl.segmenter, "precision", None),
+            "vl_encoder": getattr(cfg.keyframe_vl.vl, "precision", None),
         },
         "devices": {"tracker": cfg.tracker.device, "keyframe_vl": cfg.keyframe_vl.device, "query": cfg.query.device},
         "voxel_size": cfg.fusion.tsdf.voxel_size,

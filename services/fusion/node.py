@@ -94,3 +94,8 @@ class FusionNode:
         self.token.undeclare()
         if not keep_bus:
             self.bus.close()
+
+
+def build(cfg, *, out=None, resume: bool = False) -> FusionNode:
+    """``trackgraph serve fusion --out MAP_DIR [--resume]``."""
+    return FusionNode(cfg, out, resume=resume)

@@ -124,3 +124,9 @@ class KeyframeVLNode:
             self.token.undeclare()
         if not keep_bus:
             self.bus.close()
+
+
+def build(cfg, *, out=None, resume: bool = False) -> KeyframeVLNode:
+    """``trackgraph serve keyframe_vl``: models load in start(), once the status reports (state
+    ``starting``) go out."""
+    return KeyframeVLNode(cfg, start=False)

@@ -68,7 +68,7 @@ def needed(cfg: TrackGraphConfig) -> list[tuple[str, str, str, str]]:
         out.append(("vl_encoder", vl.backend, vl.weights, source))
     feats = cfg.tracker.features
     if cfg.tracker.mode != "ground_truth" and feats.backend in ("dinov3", "dinov3_onnx"):
-        source = dinov3_source(feats.loader)
+        source = dinov3_source(feats.loader)  # both DINOv3 backends have one
         if feats.backend == "dinov3_onnx":
             source = ONNX_EXPORT + source
         out.append(("dense_features", feats.backend, feats.weights, source))

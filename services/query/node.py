@@ -47,3 +47,14 @@ class QueryNode(SessionNode):
             **report.figures, "errors": report.errors,
             "query_link": self.queryable.stats.as_dict(), "delta_link": self.deltas.stats.as_dict(),
         }  # fmt: skip
+
+
+def build(cfg, *, out=None, resume: bool = False) -> QueryNode:
+    """``trackgraph serve query``."""
+    from threadpoolctl import threadpool_limits
+
+    # Each query is one small matrix-vector product, answered on several worker threads:
+    # a multi-threaded BLAS only spins against them (9 ms against 1.3 ms for 500 segments
+    # of 1024-d galleries on 2 busy cores).
+    threadpool_limits(1, user_api="blas")
+    return QueryNode(cfg)

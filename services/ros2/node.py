@@ -244,3 +244,8 @@ def play_bag(
             own.close()
     log.info("played %d messages of %s in %.1f s (rate %.2f)", stats.messages, bag, stats.seconds, rate)
     return stats
+
+
+def build(cfg, *, out=None, resume: bool = False) -> Ros2BridgeNode:
+    """``trackgraph serve ros2``: the markers-and-queries bridge."""
+    return Ros2BridgeNode(cfg)

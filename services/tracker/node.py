@@ -66,3 +66,8 @@ class TrackerNode:
         self.token.undeclare()
         if not keep_bus:
             self.bus.close()
+
+
+def build(cfg, *, out=None, resume: bool = False) -> TrackerNode:
+    """``trackgraph serve tracker`` (services registry, services/tracker/__init__.py)."""
+    return TrackerNode(cfg)

@@ -47,3 +47,8 @@ class ViewerNode(SessionNode):
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def build(cfg, *, out=None, resume: bool = False) -> ViewerNode:
+    """``trackgraph serve viewer --out FILE.rrd``."""
+    return ViewerNode(cfg, out)

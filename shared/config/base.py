@@ -5,10 +5,10 @@ from __future__ import annotations
 import copy
 import difflib
 from pathlib import Path
-from typing import Annotated, Literal, TypeVar
+from typing import Annotated, Any, Literal, TypeVar
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError
 
 from shared.devices import DEVICE_PATTERN
 
@@ -31,6 +31,18 @@ Precision = Literal["auto", "fp32", "fp16", "bf16"]
 """A model's numeric precision; ``auto`` is fp16 on CUDA and fp32 on a CPU (shared/devices.py)."""
 
 
+def _registered_service(name: str) -> str:
+    from shared.registry import SERVICES
+
+    if name not in SERVICES:
+        raise ValueError(SERVICES.unknown(name))
+    return name
+
+
+ServiceName = Annotated[str, AfterValidator(_registered_service)]
+"""A service of the services registry (shared/registry.py): ``source``, ``tracker``, ..."""
+
+
 class ConfigError(ValueError):
     """A config file could not be read or does not validate. The message names file and key."""
 
@@ -38,25 +50,44 @@ class ConfigError(ValueError):
 M = TypeVar("M", bound=BaseModel)
 
 
-def _keys_at(model: type[BaseModel] | None, path: tuple) -> list[str]:
-    """Field names of the nested model at ``path`` (for "did you mean" hints)."""
+def _model_at(model: type[BaseModel] | None, path: tuple, data: Any = None) -> type[BaseModel] | None:
+    """The nested model at ``path``; where a section picks its model by ``backend`` (a backend
+    config, shared/config/backends.py), the one the raw ``data`` asks for."""
     for part in path:
         if model is None:
-            return []
+            return None
         field = model.model_fields.get(str(part))
         ann = getattr(field, "annotation", None)
         model = ann if isinstance(ann, type) and issubclass(ann, BaseModel) else None
-    return list(model.model_fields) if model is not None else []
+        data = data.get(str(part)) if isinstance(data, dict) else None
+        if model is not None and "backend" in model.model_fields and isinstance(data, dict):
+            model = _backend_of(model, data) or model
+    return model
 
 
-def format_validation_error(err: ValidationError, source: str, model: type[BaseModel] | None = None) -> str:
-    """One line per problem: ``SOURCE: dotted.key: what was expected (got VALUE)``."""
+def _backend_of(base: type[BaseModel], data: dict) -> type[BaseModel] | None:
+    from shared.config.backends import BackendConfig
+
+    registry = getattr(base, "__registry__", None)
+    if not issubclass(base, BackendConfig) or registry is None:
+        return None
+    name = data.get("backend", getattr(base, "__default_backend__", None))
+    return registry.get(name) if name in registry else None
+
+
+def format_validation_error(err: ValidationError, source: str, model: type[BaseModel] | None = None, data: Any = None) -> str:
+    """One line per problem: ``SOURCE: dotted.key: what was expected (got VALUE)``. An unknown
+    key of a backend's section names the backend and suggests the nearest of its own keys."""
     lines = []
     for e in err.errors():
         loc = ".".join(str(p) for p in e["loc"]) or "<root>"
         if e["type"] == "extra_forbidden":
-            close = difflib.get_close_matches(str(e["loc"][-1]), _keys_at(model, e["loc"][:-1]), n=1)
-            msg = "unknown key" + (f" (did you mean {close[0]!r}?)" if close else "")
+            at = _model_at(model, e["loc"][:-1], data)
+            close = difflib.get_close_matches(str(e["loc"][-1]), list(at.model_fields) if at else [], n=1)
+            whose = ""
+            if at is not None and "backend" in at.model_fields:
+                whose = f" for backend {at.model_fields['backend'].default!r}"
+            msg = f"unknown key{whose}" + (f" (did you mean {close[0]!r}?)" if close else "")
         else:
             msg = e["msg"]
         got = e.get("input")
@@ -92,7 +123,7 @@ def validate(model: type[M], data: dict, source: str) -> M:
     try:
         return model.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(format_validation_error(exc, source, model)) from None
+        raise ConfigError(format_validation_error(exc, source, model, data)) from None
 
 
 def load_model(model: type[M], path: str | Path) -> M:
@@ -113,10 +144,15 @@ def save_resolved(model: BaseModel, path: str | Path) -> Path:
 
 
 def deep_merge(base: dict, over: dict) -> dict:
-    """``base`` with ``over`` laid on top, nested dicts merged key by key; both left as they were."""
+    """``base`` with ``over`` laid on top, nested dicts merged key by key; both left as they were.
+    A section whose ``backend`` ``over`` changes is replaced, not merged: the fields ``base``
+    gave it belong to the other backend (shared/config/backends.py)."""
     out = copy.deepcopy(base)
     for key, value in over.items():
-        if isinstance(value, dict) and isinstance(out.get(key), dict):
+        old = out.get(key)
+        if isinstance(value, dict) and isinstance(old, dict) and "backend" in value and value["backend"] != old.get("backend"):
+            out[key] = copy.deepcopy(value)
+        elif isinstance(value, dict) and isinstance(old, dict):
             out[key] = deep_merge(out[key], value)
         else:
             out[key] = copy.deepcopy(value)

@@ -2,11 +2,50 @@
 
 from __future__ import annotations
 
+from abc import abstractmethod
 from typing import Literal
 
 from pydantic import Field
 
+from shared.config.backends import BackendConfig, backend_config, backend_section
 from shared.config.base import Device, Precision, StrictModel
+from shared.registry import Registry
+
+SEGMENTERS: Registry[type[SegmenterBackend]] = Registry("segmenter backend")
+"""Keyframe segmenter backends (``keyframe_vl.segmenter.backend``)."""
+
+VL_ENCODERS: Registry[type[VLEncoderBackend]] = Registry("VL encoder backend")
+"""Vision-language encoder backends (``keyframe_vl.vl.backend``)."""
+
+
+class SegmenterBackend(BackendConfig):
+    """What every class-agnostic keyframe segmenter (FastSAM in the paper) shares: the filter
+    its masks pass (services/keyframe_vl/segmenters/base.py)."""
+
+    max_masks: int = Field(100, ge=1)
+    """Keep at most this many masks per keyframe, highest score first."""
+    min_area_px: int = Field(100, ge=0)
+    """Drop masks smaller than this (pixels)."""
+    max_area_frac: float = Field(0.95, gt=0, le=1)
+    """Drop masks covering more than this fraction of the image."""
+
+    @abstractmethod
+    def build(self, device: str = "cpu", fp16: bool = False):
+        """The :class:`~shared.perception.Segmenter` this config describes. ``device`` and
+        ``fp16`` matter to the backends that run a network; missing weights raise
+        FileNotFoundError naming the path (nothing is ever downloaded)."""
+
+
+class VLEncoderBackend(BackendConfig):
+    """What every vision-language encoder (CLIP in the paper) is asked for."""
+
+    @abstractmethod
+    def build(self, device: str = "cpu", fp16: bool = True, ground_truth=None):
+        """The :class:`~shared.perception.VLEncoder` this config describes. ``device`` is
+        ``cpu``, ``cuda`` (or ``cuda:N``) or ``auto``; ``fp16`` says whether a ``precision:
+        auto`` may be half precision on CUDA (shared/devices.py); ``ground_truth`` (an
+        :class:`~shared.datasets.ground_truth.InstanceSource`) stands in for a simulated
+        backend's sequence folder (tests)."""
 
 
 class SimulatedSegmenterNoise(StrictModel):
@@ -31,8 +70,63 @@ class SimulatedSegmenterNoise(StrictModel):
     """Mean number of spurious blob masks added per keyframe."""
 
 
-class ClassicalSegmenterConfig(StrictModel):
-    """Graph-based RGB-D segmentation of the ``classical`` segmenter (no learned weights)."""
+class _FastSAMFields(SegmenterBackend):
+    """FastSAM's settings, shared by the ultralytics and the ONNX runtime backends."""
+
+    weights: str = "weights/FastSAM-x.pt"
+    """Local FastSAM checkpoint (.pt) or ONNX export; never downloaded."""
+    imgsz: int = Field(1024, ge=32)
+    """FastSAM inference size (long side, pixels)."""
+    conf: float = Field(0.4, ge=0, le=1)
+    """FastSAM confidence threshold."""
+    iou: float = Field(0.9, ge=0, le=1)
+    """FastSAM NMS IoU threshold."""
+    retina_masks: bool = True
+    """Upsample masks to full image resolution before thresholding."""
+
+
+@SEGMENTERS.register("fastsam")
+class FastSAMConfig(_FastSAMFields):
+    """FastSAM on ultralytics: the paper's FastSAM-x (III-B)."""
+
+    backend: Literal["fastsam"] = "fastsam"
+    """FastSAM on ultralytics (services/keyframe_vl/segmenters/fastsam.py)."""
+    precision: Precision = "auto"
+    """FastSAM's arithmetic: ``fp32``, ``fp16`` (on CUDA ultralytics' own half-precision
+    model; on a CPU torch autocast around predict) or ``bf16`` (torch autocast; the weights
+    stay fp32). ``auto`` is fp16 on CUDA
+    when ``keyframe_vl.fp16`` (tensor cores run half precision at full rate) and fp32 on a
+    CPU, where fp16 is emulated: on this 2-core CPU a random-weight FastSAM-s took 0.55 s a
+    320 px keyframe in fp16 against 0.12 s in bf16."""
+
+    def build(self, device: str = "cpu", fp16: bool = False):
+        from services.keyframe_vl.segmenters.fastsam import FastSAMSegmenter
+
+        return FastSAMSegmenter(self, device=device, fp16=fp16)
+
+
+@SEGMENTERS.register("fastsam_onnx")
+class FastSAMOnnxConfig(_FastSAMFields):
+    """FastSAM exported to ONNX (``trackgraph export-onnx``), run by onnxruntime. It runs in
+    the precision it was exported in."""
+
+    backend: Literal["fastsam_onnx"] = "fastsam_onnx"
+    """FastSAM's ONNX export on onnxruntime (services/keyframe_vl/segmenters/fastsam_onnx.py)."""
+    weights: str = "weights/FastSAM-x.onnx"
+    """Local FastSAM ONNX export (``trackgraph export-onnx``); never downloaded."""
+
+    def build(self, device: str = "cpu", fp16: bool = False):
+        from services.keyframe_vl.segmenters.fastsam_onnx import FastSAMOnnxSegmenter
+
+        return FastSAMOnnxSegmenter(self, device=device, fp16=fp16)
+
+
+@SEGMENTERS.register("classical")
+class ClassicalSegmenterConfig(SegmenterBackend):
+    """Graph-based RGB-D segmentation (no learned weights)."""
+
+    backend: Literal["classical"] = "classical"
+    """Graph-based RGB-D segmentation, no weights (services/keyframe_vl/segmenters/classical.py)."""
 
     graph_width: int = Field(320, ge=16, le=4096)
     """Least width (pixels) of the pixel graph: the image is reduced by the largest integer
@@ -63,52 +157,46 @@ class ClassicalSegmenterConfig(StrictModel):
     """Regions thinner than this (graph pixels) merge into their most similar neighbour: the
     slivers of mixed pixels along silhouettes."""
 
+    def build(self, device: str = "cpu", fp16: bool = False):
+        from services.keyframe_vl.segmenters.classical import ClassicalSegmenter
 
-class SegmenterConfig(StrictModel):
-    """Class-agnostic keyframe segmenter (FastSAM in the paper)."""
+        return ClassicalSegmenter(self)
 
-    backend: Literal["fastsam", "fastsam_onnx", "classical", "simulated"] = "fastsam"
-    """Which implementation; ``simulated`` works only on synthetic scenes."""
-    weights: str = "weights/FastSAM-x.pt"
-    """Local FastSAM checkpoint (.pt) or ONNX export; never downloaded."""
-    imgsz: int = Field(1024, ge=32)
-    """FastSAM inference size (long side, pixels)."""
-    conf: float = Field(0.4, ge=0, le=1)
-    """FastSAM confidence threshold."""
-    iou: float = Field(0.9, ge=0, le=1)
-    """FastSAM NMS IoU threshold."""
-    retina_masks: bool = True
-    """Upsample masks to full image resolution before thresholding."""
-    max_masks: int = Field(100, ge=1)
-    """Keep at most this many masks per keyframe, highest score first."""
-    min_area_px: int = Field(100, ge=0)
-    """Drop masks smaller than this (pixels)."""
-    max_area_frac: float = Field(0.95, gt=0, le=1)
-    """Drop masks covering more than this fraction of the image."""
-    precision: Precision = "auto"
-    """FastSAM's arithmetic: ``fp32``, ``fp16`` (on CUDA ultralytics' own half-precision
-    model; on a CPU torch autocast around predict) or ``bf16`` (torch autocast; the weights
-    stay fp32). ``auto`` is fp16 on CUDA
-    when ``keyframe_vl.fp16`` (tensor cores run half precision at full rate) and fp32 on a
-    CPU, where fp16 is emulated: on this 2-core CPU a random-weight FastSAM-s took 0.55 s a
-    320 px keyframe in fp16 against 0.12 s in bf16."""
+
+@SEGMENTERS.register("simulated")
+class SimulatedSegmenterConfig(SegmenterBackend):
+    """Noisy ground-truth masks of a synthetic scene: measures the mapping, not FastSAM."""
+
+    backend: Literal["simulated"] = "simulated"
+    """Ground truth with FastSAM-like errors; synthetic scenes only
+    (services/keyframe_vl/segmenters/simulated.py)."""
     noise: SimulatedSegmenterNoise = Field(default_factory=SimulatedSegmenterNoise)
-    """Noise of the ``simulated`` backend; all zeros reproduces the ground truth."""
+    """The errors; all zeros reproduces the ground truth."""
     seed: int = 0
-    """Seed of the ``simulated`` backend's noise, combined with the frame index."""
+    """Seed of the noise, combined with the frame index."""
     ground_truth: str | None = None
-    """``simulated`` backend only: the synthetic sequence folder (``SEQ_DIR`` with
-    ``instances/``) whose instance images it reads by keyframe index. ``trackgraph map``,
-    ``launch`` and ``serve --sequence`` set it to the sequence when unset."""
-    classical: ClassicalSegmenterConfig = Field(default_factory=ClassicalSegmenterConfig)
-    """Knobs of the ``classical`` backend."""
+    """The synthetic sequence folder (``SEQ_DIR`` with ``instances/``) whose instance images
+    it reads by keyframe index. ``trackgraph map``, ``launch`` and ``serve --sequence`` set it
+    to the sequence when unset."""
+
+    def build(self, device: str = "cpu", fp16: bool = False):
+        from services.keyframe_vl.segmenters.simulated import SimulatedSegmenter
+
+        return SimulatedSegmenter(self)
 
 
-class VLEncoderConfig(StrictModel):
-    """Vision-language encoder for keyframe crops and queries (CLIP in the paper)."""
+SegmenterSection, _segmenter_default = backend_section(SEGMENTERS, SegmenterBackend, "fastsam")
+"""``keyframe_vl.segmenter``: the fields of the backend its ``backend`` key names."""
 
-    backend: Literal["openclip", "clip_onnx", "simulated"] = "openclip"
-    """Which implementation; ``simulated`` works only on synthetic scenes."""
+
+def segmenter_config(**fields) -> SegmenterBackend:
+    """A ``keyframe_vl.segmenter`` section from keyword fields (``backend`` default ``fastsam``)."""
+    return backend_config(SEGMENTERS, "fastsam", **fields)
+
+
+class _ClipFields(VLEncoderBackend):
+    """An OpenCLIP model's settings, shared by the torch and the ONNX runtime backends."""
+
     model: str = "ViT-H-14"
     """OpenCLIP architecture; ViT-H-14 in the paper (IV-A), ViT-B-32 onboard."""
     weights: str = "weights/open_clip_vit_h14.bin"
@@ -121,32 +209,94 @@ class VLEncoderConfig(StrictModel):
     pixel of the object is seen. ``center_crop``: OpenCLIP's own transform, which resizes the
     short side and cuts the middle square; an elongated crop loses its ends (a 165x6 box keeps
     4% of its width). Image queries always use OpenCLIP's own transform."""
+    batch_size: int = Field(16, ge=1)
+    """Crops per forward pass."""
+
+
+@VL_ENCODERS.register("openclip")
+class OpenClipConfig(_ClipFields):
+    """OpenCLIP from a local checkpoint: the paper's ViT-H-14 (IV-A)."""
+
+    backend: Literal["openclip"] = "openclip"
+    """OpenCLIP on torch (services/keyframe_vl/encoders/openclip.py)."""
     precision: Precision = "auto"
     """CLIP's arithmetic, under torch autocast (the weights stay fp32): ``fp32``, ``fp16`` or
     ``bf16``. ``auto`` is fp16 on CUDA when ``keyframe_vl.fp16`` (tensor cores run half
     precision at full rate) and fp32 on a CPU, where fp16 is emulated and slower. On random
     ViT-S-32 weights, crop features in bf16 have cosine 0.9999 to fp32's, in fp16 1.0000
-    (tests/services/keyframe_vl/encoders/test_enc_precision.py). ONNX exports run in the
-    precision they were written in."""
-    batch_size: int = Field(16, ge=1)
-    """Crops per forward pass."""
+    (tests/services/keyframe_vl/encoders/test_enc_precision.py)."""
+
+    def build(self, device: str = "cpu", fp16: bool = True, ground_truth=None):
+        from services.keyframe_vl.encoders.openclip import OpenClipEncoder
+        from shared.devices import resolve_device, resolve_precision
+
+        device = resolve_device(device)
+        return OpenClipEncoder(
+            self.model, self.weights, device=device, precision=resolve_precision(self.precision, device, fp16),
+            crop_padding=self.crop_padding, batch_size=self.batch_size, crop_mode=self.crop_mode,
+        )  # fmt: skip
+
+
+@VL_ENCODERS.register("clip_onnx")
+class ClipOnnxConfig(_ClipFields):
+    """OpenCLIP's towers exported to ONNX (``trackgraph export-onnx``), run by onnxruntime in
+    the precision they were exported in."""
+
+    backend: Literal["clip_onnx"] = "clip_onnx"
+    """OpenCLIP's ONNX export on onnxruntime (services/keyframe_vl/encoders/clip_onnx.py)."""
+
+    def build(self, device: str = "cpu", fp16: bool = True, ground_truth=None):
+        from services.keyframe_vl.encoders.clip_onnx import ClipOnnxEncoder
+        from shared.devices import resolve_device
+
+        return ClipOnnxEncoder(
+            self.weights, arch=self.model, device=resolve_device(device),
+            crop_padding=self.crop_padding, batch_size=self.batch_size, crop_mode=self.crop_mode,
+        )  # fmt: skip
+
+
+@VL_ENCODERS.register("simulated")
+class SimulatedVLConfig(VLEncoderBackend):
+    """Ground-truth label mixtures in MiniLM text space: measures the mapping, not CLIP."""
+
+    backend: Literal["simulated"] = "simulated"
+    """Ground-truth labels embedded by a real offline text encoder; synthetic scenes only
+    (services/keyframe_vl/encoders/simulated.py)."""
     noise_std: float = Field(0.05, ge=0)
-    """Gaussian noise added by the ``simulated`` encoder before normalisation."""
+    """Gaussian noise added before normalisation."""
     ground_truth: str | None = None
-    """``simulated`` backend only: the synthetic sequence folder (``SEQ_DIR``; its ``gt/``
-    subfolder is accepted too). The encoder mixes the labels of ``gt/gt_categories.json`` by
-    the instance images of ``instances/``, read by keyframe index for crops and by pixel
-    content for image queries. ``trackgraph map``, ``launch`` and ``serve --sequence`` set it
-    to the sequence when unset."""
+    """The synthetic sequence folder (``SEQ_DIR``; its ``gt/`` subfolder is accepted too). The
+    encoder mixes the labels of ``gt/gt_categories.json`` by the instance images of
+    ``instances/``, read by keyframe index for crops and by pixel content for image queries.
+    ``trackgraph map``, ``launch`` and ``serve --sequence`` set it to the sequence when
+    unset."""
+
+    def build(self, device: str = "cpu", fp16: bool = True, ground_truth=None):
+        from services.keyframe_vl.encoders.simulated import SimulatedVLEncoder
+
+        # The text encoder stays on the CPU: its embeddings are cached on disk by text, and
+        # a crop costs no network pass at all.
+        return SimulatedVLEncoder(self.ground_truth, noise_std=self.noise_std, source=ground_truth)
+
+
+VLSection, _vl_default = backend_section(VL_ENCODERS, VLEncoderBackend, "openclip")
+"""``keyframe_vl.vl``: the fields of the backend its ``backend`` key names."""
+
+
+def vl_config(**fields) -> VLEncoderBackend:
+    """A ``keyframe_vl.vl`` section from keyword fields (``backend`` default ``openclip``)."""
+    return backend_config(VL_ENCODERS, "openclip", **fields)
 
 
 class KeyframeVLConfig(StrictModel):
     """The keyframe_vl service."""
 
-    segmenter: SegmenterConfig = Field(default_factory=SegmenterConfig)
-    """Mask backend."""
-    vl: VLEncoderConfig = Field(default_factory=VLEncoderConfig)
-    """CLIP backend."""
+    segmenter: SegmenterSection = _segmenter_default
+    """Mask backend: ``backend`` (one of the segmenter registry's: ``fastsam``,
+    ``fastsam_onnx``, ``classical``, ``simulated``) and that backend's fields."""
+    vl: VLSection = _vl_default
+    """CLIP backend: ``backend`` (``openclip``, ``clip_onnx``, ``simulated``) and that
+    backend's fields."""
     device: Device = "auto"
     """Torch device of FastSAM and CLIP: ``auto`` (CUDA when present), ``cpu``, ``cuda`` or
     ``cuda:N``."""

@@ -4,13 +4,23 @@ connect, and how crashed ones are restarted."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any
 
-from pydantic import Field, model_validator
+from pydantic import AfterValidator, Field, model_validator
 
 from shared.config.base import StrictModel, load_model
 
-ServiceName = Literal["router", "source", "keyframe_vl", "tracker", "fusion", "query", "viewer", "ros2"]
+
+def _launchable(name: str) -> str:
+    from shared.registry import SERVICES
+
+    if name != "router" and name not in SERVICES:
+        raise ValueError(SERVICES.unknown(name).replace("choose one of: ", "choose one of: router, "))
+    return name
+
+
+ServiceName = Annotated[str, AfterValidator(_launchable)]
+"""``router`` or a service of the services registry (shared/registry.py)."""
 
 
 class RestartPolicy(StrictModel):

@@ -6,7 +6,7 @@ from typing import Literal
 
 from pydantic import Field, field_validator
 
-from shared.config.base import StrictModel
+from shared.config.base import ServiceName, StrictModel
 
 _LOCATOR_PREFIXES = ("tcp/", "udp/", "tls/", "quic/", "unixsock-stream/", "ws/")
 
@@ -83,7 +83,7 @@ class TransportConfig(StrictModel):
     fields above."""
     codec: CodecConfig = Field(default_factory=CodecConfig)
     """Encoding and decoding limits of this process's links."""
-    status_heartbeat: list[Literal["source", "keyframe_vl", "tracker", "fusion", "query", "viewer", "ros2"]] = Field(
+    status_heartbeat: list[ServiceName] = Field(
         default_factory=lambda: ["fusion"]
     )
     """Services whose status reports go out through a heartbeat process of their own, so that

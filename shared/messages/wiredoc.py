@@ -37,7 +37,7 @@ from shared.config.transport import CodecConfig
 from shared.messages import REGISTRY
 from shared.messages.base import Units
 from shared.messages.contract import CONTRACT
-from shared.topics import SERVICES
+from shared.topics import service_names
 
 ROOT = Path(__file__).resolve().parents[2]
 WIRE_MD = Path("docs") / "wire.md"
@@ -394,7 +394,7 @@ def _keys_section() -> list[str]:
         "## Keys",
         "",
         f"Every key lies under `trackgraph/<robot_id>/`; a robot id is 1 to 64 letters, digits, `_` or `-` "
-        f"(`{ROBOT_ID.pattern}`). `<service>` is one of {', '.join(f'`{s}`' for s in SERVICES)}.",
+        f"(`{ROBOT_ID.pattern}`). `<service>` is one of {', '.join(f'`{s}`' for s in service_names())}.",
         "",
         *_table(["key", "message", "delivery", "QoS", "declared by", "listeners (subscriber policy)", "what"], rows),
         "",

@@ -25,8 +25,23 @@ from shared.config import (
     save_resolved,
 )
 from shared.config.fusion import GraphConfig, ReidConfig, SegmentsConfig, TSDFConfig
-from shared.config.keyframe_vl import SegmenterConfig, SimulatedSegmenterNoise, VLEncoderConfig
-from shared.config.tracker import AssociationConfig, DenseFeaturesConfig, PropagationConfig
+from shared.config.keyframe_vl import (
+    ClassicalSegmenterConfig,
+    ClipOnnxConfig,
+    FastSAMConfig,
+    FastSAMOnnxConfig,
+    OpenClipConfig,
+    SimulatedSegmenterConfig,
+    SimulatedSegmenterNoise,
+    SimulatedVLConfig,
+)
+from shared.config.tracker import (
+    AssociationConfig,
+    ClassicalFeaturesConfig,
+    Dinov3Config,
+    Dinov3OnnxConfig,
+    PropagationConfig,
+)
 
 
 def write(tmp_path: Path, text: str, name: str = "trackgraph.yaml") -> Path:
@@ -110,6 +125,9 @@ def walk_models(root: type[BaseModel]) -> set[type[BaseModel]]:
         seen.add(model)
         for field in model.model_fields.values():
             todo.extend(_nested_models(field.annotation))
+        registry = getattr(model, "__registry__", None)  # a backend section: every backend's model
+        if registry is not None:
+            todo.extend(m for _, m in registry.items())
     return seen
 
 
@@ -117,8 +135,9 @@ def test_walk_reaches_every_config_model() -> None:
     models = walk_models(TrackGraphConfig)
     assert models >= {
         TrackGraphConfig, TransportConfig, CodecConfig, SourceConfig, KeyframeVLConfig,
-        SegmenterConfig, SimulatedSegmenterNoise, VLEncoderConfig, TrackerConfig,
-        DenseFeaturesConfig, PropagationConfig, AssociationConfig, FusionConfig, TSDFConfig,
+        FastSAMConfig, FastSAMOnnxConfig, ClassicalSegmenterConfig, SimulatedSegmenterConfig,
+        SimulatedSegmenterNoise, OpenClipConfig, ClipOnnxConfig, SimulatedVLConfig, TrackerConfig,
+        Dinov3Config, Dinov3OnnxConfig, ClassicalFeaturesConfig, PropagationConfig, AssociationConfig, FusionConfig, TSDFConfig,
         SegmentsConfig, ReidConfig, GraphConfig, QueryConfig,
     }
 
@@ -282,7 +301,8 @@ def test_save_resolved_round_trips_a_modified_config(tmp_path: Path) -> None:
     cfg.source.max_frames = 100
     cfg.transport.connect = ["tcp/10.0.0.2:7447", "tls/base:7447"]
     cfg.transport.codec.rgb = "jpeg"
-    cfg.keyframe_vl.segmenter.noise.split_prob = 0.0
+    cfg.keyframe_vl.segmenter = SimulatedSegmenterConfig(noise=SimulatedSegmenterNoise(split_prob=0.0))
+    cfg.keyframe_vl.segmenter.noise.merge_prob = 0.5
     cfg.query.gallery = "mean"
     path = save_resolved(cfg, tmp_path / "resolved.yaml")
     loaded = load_config(path)

@@ -7,7 +7,7 @@ from pydantic import ValidationError
 
 from shared.config.keyframe_vl import KeyframeVLConfig
 from shared.config.query import QueryConfig
-from shared.config.tracker import DenseFeaturesConfig, TrackerConfig
+from shared.config.tracker import TrackerConfig, dense_features_config
 from shared.devices import device_index, device_type, resolve_device, resolve_precision
 
 
@@ -28,9 +28,9 @@ def test_configs_refuse_other_devices_naming_the_field(device):
 
 def test_precision_fields_take_the_four_values_and_nothing_else():
     for p in ("auto", "fp32", "fp16", "bf16"):
-        assert DenseFeaturesConfig(precision=p).precision == p
+        assert dense_features_config(precision=p).precision == p
     with pytest.raises(ValidationError, match="precision"):
-        DenseFeaturesConfig(precision="int8")
+        dense_features_config(precision="int8")
 
 
 def test_auto_precision_is_half_on_cuda_only_and_explicit_choices_stay():

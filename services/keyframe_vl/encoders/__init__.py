@@ -11,23 +11,17 @@ each backend imports what it needs when it is made.
 
 from __future__ import annotations
 
-import logging
-
-from shared.config.keyframe_vl import VLEncoderConfig
+from shared.config.keyframe_vl import VL_ENCODERS, VLEncoderBackend
 from shared.datasets.ground_truth import InstanceSource
 from shared.perception import VLEncoder
 
-log = logging.getLogger(__name__)
-
-BACKENDS = ("openclip", "clip_onnx", "simulated")
-
-__all__ = ["BACKENDS", "make_vl_encoder"]
+__all__ = ["VL_ENCODERS", "make_vl_encoder"]
 
 
 def make_vl_encoder(
-    cfg: VLEncoderConfig, device: str = "cpu", fp16: bool = True, ground_truth: InstanceSource | None = None
+    cfg: VLEncoderBackend, device: str = "cpu", fp16: bool = True, ground_truth: InstanceSource | None = None
 ) -> VLEncoder:
-    """The encoder ``cfg.backend`` names.
+    """The encoder ``cfg`` describes (``cfg.build``, registered in ``VL_ENCODERS``).
 
     ``device`` is ``cpu``, ``cuda`` (or ``cuda:N``) or ``auto``. The ``openclip`` backend runs
     in ``cfg.precision``; ``fp16`` says whether its ``auto`` may be half precision on CUDA
@@ -37,29 +31,4 @@ def make_vl_encoder(
     ``ground_truth`` gives the ``simulated`` backend its instance ids instead of the sequence
     folder of ``cfg.ground_truth`` (tests); the other backends need none.
     """
-    if cfg.backend in ("openclip", "clip_onnx"):
-        from shared.devices import resolve_device
-
-        device = resolve_device(device)
-    if cfg.backend == "openclip":
-        from services.keyframe_vl.encoders.openclip import OpenClipEncoder
-        from shared.devices import resolve_precision
-
-        return OpenClipEncoder(
-            cfg.model, cfg.weights, device=device, precision=resolve_precision(cfg.precision, device, fp16),
-            crop_padding=cfg.crop_padding, batch_size=cfg.batch_size, crop_mode=cfg.crop_mode,
-        )  # fmt: skip
-    if cfg.backend == "clip_onnx":
-        from services.keyframe_vl.encoders.clip_onnx import ClipOnnxEncoder
-
-        return ClipOnnxEncoder(
-            cfg.weights, arch=cfg.model, device=device,
-            crop_padding=cfg.crop_padding, batch_size=cfg.batch_size, crop_mode=cfg.crop_mode,
-        )  # fmt: skip
-    if cfg.backend == "simulated":
-        from services.keyframe_vl.encoders.simulated import SimulatedVLEncoder
-
-        # The text encoder stays on the CPU: its embeddings are cached on disk by text, and
-        # a crop costs no network pass at all.
-        return SimulatedVLEncoder(cfg.ground_truth, noise_std=cfg.noise_std, source=ground_truth)
-    raise ValueError(f"unknown VL encoder backend {cfg.backend!r}; choose one of: {', '.join(BACKENDS)}")
+    return cfg.build(device=device, fp16=fp16, ground_truth=ground_truth)

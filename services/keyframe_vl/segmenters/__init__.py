@@ -1,40 +1,22 @@
-"""Class-agnostic keyframe segmenters behind one factory, :func:`make_segmenter`.
+"""Class-agnostic keyframe segmenters.
 
-Backends (``SegmenterConfig.backend``): ``fastsam`` (ultralytics, the paper's FastSAM-x),
-``fastsam_onnx`` (an ONNX export on onnxruntime), ``classical`` (graph-based RGB-D
-segmentation, no weights) and ``simulated`` (noisy ground truth, synthetic scenes only).
-Heavy libraries are imported only by the backend that needs them, so importing this package
-stays light.
+Each backend is a config model registered in ``SEGMENTERS`` (shared/config/keyframe_vl.py:
+``fastsam``, ultralytics, the paper's FastSAM-x; ``fastsam_onnx``, an ONNX export on
+onnxruntime; ``classical``, graph-based RGB-D segmentation with no weights; ``simulated``,
+noisy ground truth on synthetic scenes) whose ``build`` imports its module here. Importing this
+package stays light.
 """
 
 from __future__ import annotations
 
-from shared.config.keyframe_vl import SegmenterConfig
+from shared.config.keyframe_vl import SEGMENTERS, SegmenterBackend
 from shared.perception import Segmenter
 
-BACKENDS = ("fastsam", "fastsam_onnx", "classical", "simulated")
-
-__all__ = ["BACKENDS", "make_segmenter"]
+__all__ = ["SEGMENTERS", "make_segmenter"]
 
 
-def make_segmenter(cfg: SegmenterConfig, device: str = "cpu", fp16: bool = False) -> Segmenter:
-    """The segmenter ``cfg.backend`` names. ``device`` ("cpu", "cuda", "cuda:N" or "auto":
-    CUDA when present) and ``fp16`` (CUDA only) matter to the FastSAM backends only. Missing
-    weights raise FileNotFoundError naming the path; nothing is ever downloaded."""
-    if cfg.backend == "fastsam":
-        from services.keyframe_vl.segmenters.fastsam import FastSAMSegmenter
-
-        return FastSAMSegmenter(cfg, device=device, fp16=fp16)
-    if cfg.backend == "fastsam_onnx":
-        from services.keyframe_vl.segmenters.fastsam_onnx import FastSAMOnnxSegmenter
-
-        return FastSAMOnnxSegmenter(cfg, device=device, fp16=fp16)
-    if cfg.backend == "classical":
-        from services.keyframe_vl.segmenters.classical import ClassicalSegmenter
-
-        return ClassicalSegmenter(cfg)
-    if cfg.backend == "simulated":
-        from services.keyframe_vl.segmenters.simulated import SimulatedSegmenter
-
-        return SimulatedSegmenter(cfg)
-    raise ValueError(f"unknown segmenter backend {cfg.backend!r}; choose one of: {', '.join(BACKENDS)}")
+def make_segmenter(cfg: SegmenterBackend, device: str = "cpu", fp16: bool = False) -> Segmenter:
+    """The segmenter ``cfg`` describes (``cfg.build``). ``device`` ("cpu", "cuda", "cuda:N" or
+    "auto": CUDA when present) and ``fp16`` (CUDA only) matter to the FastSAM backends only.
+    Missing weights raise FileNotFoundError naming the path; nothing is ever downloaded."""
+    return cfg.build(device=device, fp16=fp16)

@@ -1,6 +1,6 @@
 """What every segmenter backend shares: the area filter, the per-keyframe mask budget, boxes
 from masks, and label images turned into masks. Every backend builds its :class:`Masks` here,
-so the filtering rules of ``SegmenterConfig`` hold whichever backend runs."""
+so the filtering rules of ``SegmenterBackend`` hold whichever backend runs."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from typing import Annotated
 
 import numpy as np
 
-from shared.config.keyframe_vl import SegmenterConfig
+from shared.config.keyframe_vl import SegmenterBackend
 from shared.perception import Masks
 
 log = logging.getLogger(__name__)
@@ -41,7 +41,7 @@ def boxes_from_masks(
 def finalize(
     masks: Annotated[np.ndarray, "(N, H, W) bool"],
     scores: Annotated[np.ndarray, "(N,) float"],
-    cfg: SegmenterConfig,
+    cfg: SegmenterBackend,
 ) -> Masks:
     """Apply the area filter (``min_area_px``, ``max_area_frac``; empty masks always go), keep
     the ``max_masks`` best by score (stable for ties) and attach tight boxes."""
@@ -65,7 +65,7 @@ def finalize(
 def finalize_labels(
     labels: Annotated[np.ndarray, "(H, W) int, label >= 0, negative = no mask"],
     scores: Annotated[np.ndarray, "(L,) float, score of each label 0 .. L-1"],
-    cfg: SegmenterConfig,
+    cfg: SegmenterBackend,
 ) -> Masks:
     """Masks of a label image (one per label), filtered like :func:`finalize`. The filter runs on
     label areas first so a fine partition never materialises hundreds of full-size masks."""

@@ -1,6 +1,6 @@
 """Class-agnostic RGB-D segmentation without learned weights.
 
-The image is reduced by an integer factor to at least ``classical.graph_width`` pixels across,
+The image is reduced by an integer factor to at least ``graph_width`` pixels across,
 and a 4- or 8-neighbour pixel graph gets edge weights from three cues:
 
 - colour: CIE Lab distance of the blurred image, which follows perceived colour steps;
@@ -33,7 +33,7 @@ from services.keyframe_vl.segmenters.graph import (
     boundary_contrast,
     felzenszwalb,
 )
-from shared.config.keyframe_vl import ClassicalSegmenterConfig, SegmenterConfig
+from shared.config.keyframe_vl import ClassicalSegmenterConfig
 from shared.geometry import Intrinsics
 from shared.perception import KeyframeImage, Masks
 
@@ -241,12 +241,12 @@ class ClassicalSegmenter:
 
     name = "classical"
 
-    def __init__(self, cfg: SegmenterConfig) -> None:
+    def __init__(self, cfg: ClassicalSegmenterConfig) -> None:
         self.cfg = cfg
 
     def segment(self, image: KeyframeImage) -> Masks:
         check_image(image.rgb)
-        labels, scores = segment_labels(image.rgb, image.depth_m, image.intrinsics, self.cfg.classical)
+        labels, scores = segment_labels(image.rgb, image.depth_m, image.intrinsics, self.cfg)
         masks = finalize_labels(labels, scores, self.cfg)
         log.debug("frame %d: %d regions, %d masks", image.frame_index, len(scores), len(masks))
         return masks

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from services.keyframe_vl.segmenters.base import check_image, finalize, require_file
-from shared.config.keyframe_vl import SegmenterConfig
+from shared.config.keyframe_vl import FastSAMConfig
 from shared.perception import KeyframeImage, Masks
 
 log = logging.getLogger(__name__)
@@ -139,7 +139,7 @@ class FastSAMSegmenter:
 
     name = "fastsam"
 
-    def __init__(self, cfg: SegmenterConfig, device: str = "cpu", fp16: bool = True) -> None:
+    def __init__(self, cfg: FastSAMConfig, device: str = "cpu", fp16: bool = True) -> None:
         from shared.devices import resolve_device, resolve_precision
 
         self.cfg = cfg

@@ -28,7 +28,7 @@ from services.keyframe_vl.segmenters.fastsam import (
     load_fastsam,
     precision_kwargs,
 )
-from shared.config.keyframe_vl import SegmenterConfig
+from shared.config.keyframe_vl import FastSAMOnnxConfig
 from shared.perception import KeyframeImage, Masks
 
 log = logging.getLogger(__name__)
@@ -82,7 +82,7 @@ class FastSAMOnnxSegmenter:
 
     name = "fastsam_onnx"
 
-    def __init__(self, cfg: SegmenterConfig, device: str = "cpu", fp16: bool = False) -> None:
+    def __init__(self, cfg: FastSAMOnnxConfig, device: str = "cpu", fp16: bool = False) -> None:
         path = require_file(cfg.weights, "FastSAM ONNX export", ONNX_HINT)
         import onnxruntime as ort
 

@@ -1,6 +1,6 @@
 """Ground-truth instance masks through a FastSAM-like noise model (synthetic scenes only).
 
-The noise (``SegmenterConfig.noise``) is what a learned class-agnostic segmenter does wrong:
+The noise (``SimulatedSegmenterConfig.noise``) is what a learned class-agnostic segmenter does wrong:
 boundaries off by a pixel or two, objects cut in two or fused with a neighbour, small objects
 missed and a few masks of nothing. Draws are seeded from ``(cfg.seed, frame_index)``, so a
 keyframe always gets the same masks; with every noise knob at zero the ground truth comes back
@@ -21,7 +21,7 @@ import numpy as np
 from scipy import ndimage
 
 from services.keyframe_vl.segmenters.base import check_image, finalize
-from shared.config.keyframe_vl import SegmenterConfig, SimulatedSegmenterNoise
+from shared.config.keyframe_vl import SimulatedSegmenterConfig, SimulatedSegmenterNoise
 from shared.datasets.ground_truth import GroundTruthError, InstanceSource, SequenceGroundTruth
 from shared.perception import KeyframeImage, Masks
 
@@ -137,7 +137,7 @@ class SimulatedSegmenter:
 
     name = "simulated"
 
-    def __init__(self, cfg: SegmenterConfig, ground_truth: InstanceSource | None = None) -> None:
+    def __init__(self, cfg: SimulatedSegmenterConfig, ground_truth: InstanceSource | None = None) -> None:
         self.cfg = cfg
         self.ground_truth = ground_truth if ground_truth is not None else SequenceGroundTruth(
             cfg.ground_truth, field="keyframe_vl.segmenter.ground_truth", user="simulated segmenter"

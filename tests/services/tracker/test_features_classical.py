@@ -12,7 +12,7 @@ torch = pytest.importorskip("torch")
 
 from services.tracker.features import make_dense_features  # noqa: E402
 from services.tracker.propagation import LabelPropagator, masks_to_soft, upsample_labels  # noqa: E402
-from shared.config.tracker import DenseFeaturesConfig, PropagationConfig  # noqa: E402
+from shared.config.tracker import PropagationConfig, dense_features_config  # noqa: E402
 
 FOCAL = 300.0
 
@@ -64,7 +64,7 @@ def render(cam_x: float, height: int = 240, width: int = 320, seed: int = 0):
 
 @pytest.fixture(scope="module")
 def classical():
-    return make_dense_features(DenseFeaturesConfig(backend="classical", short_side=240))
+    return make_dense_features(dense_features_config(backend="classical", short_side=240))
 
 
 def test_contract(classical):
@@ -121,7 +121,7 @@ def test_fast_enough():
     """Budget from the design: < 30 ms at 320x240 (short side 240), < 150 ms at 640x480 (480)."""
     rng = np.random.default_rng(0)
     for (height, width, short), budget in [((240, 320, 240), 0.030), ((480, 640, 480), 0.150)]:
-        feats = make_dense_features(DenseFeaturesConfig(backend="classical", short_side=short))
+        feats = make_dense_features(dense_features_config(backend="classical", short_side=short))
         rgb = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
         depth = rng.uniform(0.5, 5.0, (height, width)).astype(np.float32)
         feats(rgb, depth)
@@ -159,7 +159,7 @@ def test_appearance_channels_do_not_depend_on_depth():
     block."""
     from services.tracker.core import appearance
 
-    feats = make_dense_features(DenseFeaturesConfig(backend="classical", short_side=240, patch_size=8))
+    feats = make_dense_features(dense_features_config(backend="classical", short_side=240, patch_size=8))
     rgb, depth, _ = render(0.0)
     near = feats(rgb, depth).numpy()
     slanted = depth * np.linspace(0.6, 1.4, depth.shape[1], dtype=np.float32)[None, :]

@@ -14,7 +14,7 @@ timm = pytest.importorskip("timm")
 transformers = pytest.importorskip("transformers")
 
 from services.tracker.features import export_dinov3_onnx, make_dense_features  # noqa: E402
-from shared.config.tracker import DenseFeaturesConfig  # noqa: E402
+from shared.config.tracker import DenseFeaturesBackend, dense_features_config  # noqa: E402
 
 SHORT = 64  # tiny inputs keep the 12-layer ViT fast on CPU
 DEPTH = 12
@@ -157,8 +157,8 @@ def frame() -> np.ndarray:
     return rng.integers(0, 256, (48, 80, 3), dtype=np.uint8)
 
 
-def cfg_for(loader: str, path: Path, backend: str = "dinov3") -> DenseFeaturesConfig:
-    return DenseFeaturesConfig(backend=backend, loader=loader, weights=str(path), short_side=SHORT)
+def cfg_for(loader: str, path: Path, backend: str = "dinov3") -> DenseFeaturesBackend:
+    return dense_features_config(backend=backend, loader=loader, weights=str(path), short_side=SHORT)
 
 
 def test_hf_config_is_vit_small_plus():

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from services.tracker.features import make_dense_features
-from shared.config.tracker import DenseFeaturesConfig
+from shared.config.tracker import dense_features_config
 
 torch = pytest.importorskip("torch")
 pytest.importorskip("timm")
@@ -20,7 +20,7 @@ def weights(tmp_path_factory):
 
 
 def _features(weights, precision: str):
-    cfg = DenseFeaturesConfig(backend="dinov3", loader="timm", weights=str(weights), short_side=64, precision=precision)
+    cfg = dense_features_config(backend="dinov3", loader="timm", weights=str(weights), short_side=64, precision=precision)
     return make_dense_features(cfg, device="cpu")
 
 

@@ -7,8 +7,9 @@ import sys
 
 import pytest
 
-from services.keyframe_vl.encoders import BACKENDS, make_vl_encoder
-from shared.config.keyframe_vl import VLEncoderConfig
+from services.keyframe_vl.encoders import VL_ENCODERS, make_vl_encoder
+from shared.config.keyframe_vl import SimulatedVLConfig, vl_config
+from shared.registry import UnknownName
 
 
 def test_importing_the_encoders_loads_no_heavy_library():
@@ -23,11 +24,18 @@ def test_importing_the_encoders_loads_no_heavy_library():
     assert out.stdout.strip() == "", f"heavy modules imported: {out.stdout.strip()}"
 
 
-def test_every_config_backend_is_known():
-    assert set(BACKENDS) == set(VLEncoderConfig.model_fields["backend"].annotation.__args__)
+def test_every_backend_is_registered_with_its_own_model():
+    assert VL_ENCODERS.names() == ("openclip", "clip_onnx", "simulated")
+    for name, model in VL_ENCODERS.items():
+        assert model.model_fields["backend"].default == name
+        assert type(vl_config(backend=name)) is model
 
 
 def test_unknown_backend_is_refused():
-    cfg = VLEncoderConfig.model_construct(backend="nope")
-    with pytest.raises(ValueError, match="unknown VL encoder backend"):
-        make_vl_encoder(cfg)
+    with pytest.raises(UnknownName, match="unknown VL encoder backend 'simulatd' .did you mean 'simulated'"):
+        vl_config(backend="simulatd")
+
+
+def test_the_factory_builds_what_the_config_describes(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        make_vl_encoder(SimulatedVLConfig(ground_truth=str(tmp_path / "nowhere")))

@@ -16,7 +16,7 @@ import pytest
 
 from services.keyframe_vl.encoders import make_vl_encoder
 from services.keyframe_vl.encoders.weights import resolve_checkpoint
-from shared.config.keyframe_vl import VLEncoderConfig
+from shared.config.keyframe_vl import vl_config
 from shared.perception import KeyframeImage, Masks
 
 open_clip = pytest.importorskip("open_clip")
@@ -43,7 +43,7 @@ def weights(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def encoder(weights):
-    return make_vl_encoder(VLEncoderConfig(backend="openclip", model=ARCH, weights=str(weights), batch_size=3))
+    return make_vl_encoder(vl_config(backend="openclip", model=ARCH, weights=str(weights), batch_size=3))
 
 
 @pytest.fixture(scope="module")
@@ -135,7 +135,7 @@ def test_checkpoint_folder_resolves_to_its_weights_file(tmp_path, weights):
 def test_missing_weights_name_the_path(tmp_path, backend):
     missing = tmp_path / "nowhere" / "open_clip_vit_h14.bin"
     with pytest.raises(FileNotFoundError) as err:
-        make_vl_encoder(VLEncoderConfig(backend=backend, model="ViT-H-14", weights=str(missing)))
+        make_vl_encoder(vl_config(backend=backend, model="ViT-H-14", weights=str(missing)))
     assert str(missing) in str(err.value)
     if backend == "openclip":
         assert "laion/CLIP-ViT-H-14-laion2B-s32B-b79K" in str(err.value)
@@ -143,16 +143,16 @@ def test_missing_weights_name_the_path(tmp_path, backend):
 
 def test_unknown_architecture_is_refused(weights):
     with pytest.raises(ValueError, match="unknown OpenCLIP architecture"):
-        make_vl_encoder(VLEncoderConfig(backend="openclip", model="ViT-Nope", weights=str(weights)))
+        make_vl_encoder(vl_config(backend="openclip", model="ViT-Nope", weights=str(weights)))
     with pytest.raises(ValueError, match="built-in name"):
-        make_vl_encoder(VLEncoderConfig(backend="openclip", model="hf-hub:laion/x", weights=str(weights)))
+        make_vl_encoder(vl_config(backend="openclip", model="hf-hub:laion/x", weights=str(weights)))
 
 
 @pytest.mark.slow
 def test_onnx_export_agrees_with_torch(encoder, onnx_dir):
     meta = json.loads((onnx_dir / "clip_onnx.json").read_text())
     assert meta["arch"] == ARCH and meta["dim"] == 384 and meta["image_size"] == [224, 224]
-    onnx = make_vl_encoder(VLEncoderConfig(backend="clip_onnx", model=ARCH, weights=str(onnx_dir), batch_size=2))
+    onnx = make_vl_encoder(vl_config(backend="clip_onnx", model=ARCH, weights=str(onnx_dir), batch_size=2))
     assert onnx.name == encoder.name and onnx.dim == encoder.dim
     image, masks = _keyframe(seed=3)
     a, b = onnx.encode_crops(image, masks), encoder.encode_crops(image, masks)
@@ -166,7 +166,7 @@ def test_onnx_export_agrees_with_torch(encoder, onnx_dir):
 
 @pytest.mark.slow
 def test_onnx_view_is_the_whole_frame_through_the_image_tower(encoder, onnx_dir):
-    onnx = make_vl_encoder(VLEncoderConfig(backend="clip_onnx", model=ARCH, weights=str(onnx_dir)))
+    onnx = make_vl_encoder(vl_config(backend="clip_onnx", model=ARCH, weights=str(onnx_dir)))
     image, _ = _keyframe(seed=4)
     view = onnx.encode_view(image)
     assert view.shape == (384,) and view.dtype == np.float32 and abs(np.linalg.norm(view) - 1.0) < 1e-5
@@ -177,7 +177,7 @@ def test_onnx_view_is_the_whole_frame_through_the_image_tower(encoder, onnx_dir)
 @pytest.mark.slow
 def test_onnx_export_refuses_another_architecture(onnx_dir):
     with pytest.raises(ValueError, match="exported from"):
-        make_vl_encoder(VLEncoderConfig(backend="clip_onnx", model="ViT-B-32", weights=str(onnx_dir)))
+        make_vl_encoder(vl_config(backend="clip_onnx", model="ViT-B-32", weights=str(onnx_dir)))
 
 
 @pytest.mark.slow
@@ -190,7 +190,7 @@ def test_paper_vit_h14_loads_through_the_same_path(tmp_path):
     t0 = time.perf_counter()
     path = tmp_path / "random_vit_h14.bin"
     _save_random("ViT-H-14", path)
-    enc = make_vl_encoder(VLEncoderConfig(backend="openclip", model="ViT-H-14", weights=str(path), batch_size=2))
+    enc = make_vl_encoder(vl_config(backend="openclip", model="ViT-H-14", weights=str(path), batch_size=2))
     path.unlink()
     image, masks = _keyframe()
     feats = enc.encode_crops(image, Masks(masks.masks[:2], masks.boxes[:2], masks.scores[:2]))

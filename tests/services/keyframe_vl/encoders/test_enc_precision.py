@@ -7,7 +7,7 @@ import pytest
 
 from services.keyframe_vl.crops import pad_to_square, padded_boxes, padded_crops, shape_crops
 from services.keyframe_vl.encoders import make_vl_encoder
-from shared.config.keyframe_vl import VLEncoderConfig
+from shared.config.keyframe_vl import vl_config
 from shared.perception import KeyframeImage, Masks
 
 torch = pytest.importorskip("torch")
@@ -24,7 +24,7 @@ def weights(tmp_path_factory):
 
 
 def _encoder(weights, **cfg):
-    return make_vl_encoder(VLEncoderConfig(backend="openclip", model=ARCH, weights=str(weights), **cfg), device="cpu")
+    return make_vl_encoder(vl_config(backend="openclip", model=ARCH, weights=str(weights), **cfg), device="cpu")
 
 
 def _keyframe(seed: int = 0) -> tuple[KeyframeImage, Masks]:
@@ -117,4 +117,4 @@ def test_device_crop_path_equals_the_pil_path(weights, mode):
 
 def test_unknown_crop_mode_is_refused():
     with pytest.raises(ValueError, match="crop_mode"):
-        VLEncoderConfig(crop_mode="stretch")
+        vl_config(crop_mode="stretch")

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from services.keyframe_vl.encoders import make_vl_encoder
-from shared.config.keyframe_vl import VLEncoderConfig
+from shared.config.keyframe_vl import vl_config
 from shared.datasets.ground_truth import GroundTruthError, StaticGroundTruth
 from shared.perception import KeyframeImage, Masks
 
@@ -38,7 +38,7 @@ def _encoder(gt_dir, noise_std: float = 0.05):
     image query it knows."""
     rgb, inst = _scene()
     truth = StaticGroundTruth({i: inst for i in range(8)}, images=[(rgb, inst)])
-    return make_vl_encoder(VLEncoderConfig(backend="simulated", ground_truth=str(gt_dir), noise_std=noise_std), ground_truth=truth)
+    return make_vl_encoder(vl_config(backend="simulated", ground_truth=str(gt_dir), noise_std=noise_std), ground_truth=truth)
 
 
 def _scene() -> tuple[np.ndarray, np.ndarray]:
@@ -116,23 +116,23 @@ def test_ground_truth_comes_from_the_source_by_index_and_by_image(gt_dir):
 
 def test_bad_ground_truth_is_named(tmp_path):
     with pytest.raises(ValueError, match="ground_truth"):
-        make_vl_encoder(VLEncoderConfig(backend="simulated"))
+        make_vl_encoder(vl_config(backend="simulated"))
     # Categories without a sequence beside them: the instance images are missing.
     (tmp_path / "labels").mkdir()
     (tmp_path / "labels" / "gt_categories.json").write_text(json.dumps({"dataset": {"samples": [_sample(0, ["chair"])]}}))
     with pytest.raises(GroundTruthError, match=r"keyframe_vl.vl.ground_truth: .*labels has no instances/"):
-        make_vl_encoder(VLEncoderConfig(backend="simulated", ground_truth=str(tmp_path / "labels")))
+        make_vl_encoder(vl_config(backend="simulated", ground_truth=str(tmp_path / "labels")))
     with pytest.raises(FileNotFoundError) as err:
-        make_vl_encoder(VLEncoderConfig(backend="simulated", ground_truth=str(tmp_path)))
+        make_vl_encoder(vl_config(backend="simulated", ground_truth=str(tmp_path)))
     assert str(tmp_path / "gt_categories.json") in str(err.value)
     bad = tmp_path / "gt_categories.json"
     bad.write_text("{not json")
     with pytest.raises(ValueError) as err:
-        make_vl_encoder(VLEncoderConfig(backend="simulated", ground_truth=str(tmp_path)))
+        make_vl_encoder(vl_config(backend="simulated", ground_truth=str(tmp_path)))
     assert str(bad) in str(err.value)
     bad.write_text(json.dumps({"dataset": {"samples": [_sample(0, [])]}}))
     with pytest.raises(ValueError, match="no object"):
-        make_vl_encoder(VLEncoderConfig(backend="simulated", ground_truth=str(tmp_path)))
+        make_vl_encoder(vl_config(backend="simulated", ground_truth=str(tmp_path)))
 
 
 def test_warm_up_loads_the_text_model_past_the_disk_cache(gt_dir):

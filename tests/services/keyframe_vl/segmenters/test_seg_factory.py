@@ -8,9 +8,9 @@ import sys
 import pytest
 from seg_room import truth
 
-from services.keyframe_vl.segmenters import BACKENDS, make_segmenter
+from services.keyframe_vl.segmenters import SEGMENTERS, make_segmenter
 from services.keyframe_vl.segmenters.simulated import SimulatedSegmenter
-from shared.config.keyframe_vl import SegmenterConfig
+from shared.config.keyframe_vl import segmenter_config
 
 LIGHT = [
     "services.keyframe_vl.segmenters",
@@ -37,21 +37,25 @@ def test_importing_segmenters_loads_no_heavy_library():
 @pytest.mark.parametrize("backend", ["classical", "simulated"])
 def test_weightless_backends(backend, room):
     if backend == "simulated":
-        seg = SimulatedSegmenter(SegmenterConfig(backend=backend), truth(room))
+        seg = SimulatedSegmenter(segmenter_config(backend=backend), truth(room))
     else:
-        seg = make_segmenter(SegmenterConfig(backend=backend))
+        seg = make_segmenter(segmenter_config(backend=backend))
     assert seg.name == backend
     out = seg.segment(room)
     assert out.masks.shape[1:] == room.rgb.shape[:2] and len(out) > 0
 
 
-def test_every_config_backend_is_known():
-    literal = SegmenterConfig.model_fields["backend"].annotation.__args__
-    assert set(literal) == set(BACKENDS)
+def test_every_backend_is_registered_with_its_own_model():
+    assert SEGMENTERS.names() == ("fastsam", "fastsam_onnx", "classical", "simulated")
+    for name, model in SEGMENTERS.items():
+        assert model.model_fields["backend"].default == name
+        assert type(segmenter_config(backend=name)) is model
+    with pytest.raises(ValueError, match="unknown segmenter backend 'fastsm' .did you mean 'fastsam'"):
+        segmenter_config(backend="fastsm")
 
 
 def test_bad_images_are_refused(room):
-    seg = make_segmenter(SegmenterConfig(backend="classical"))
+    seg = make_segmenter(segmenter_config(backend="classical"))
     import dataclasses
 
     with pytest.raises(ValueError, match="uint8"):

@@ -13,7 +13,7 @@ import pytest
 from services.keyframe_vl.segmenters import make_segmenter
 from services.keyframe_vl.segmenters.fastsam import import_ultralytics
 from services.keyframe_vl.segmenters.fastsam_onnx import export_fastsam_onnx
-from shared.config.keyframe_vl import SegmenterConfig
+from shared.config.keyframe_vl import SegmenterBackend, segmenter_config
 from shared.perception import KeyframeImage, Masks
 
 if importlib.util.find_spec("ultralytics") is None or importlib.util.find_spec("onnxruntime") is None:
@@ -80,10 +80,10 @@ def square_image():
 def _cfg(weights, backend="fastsam", **kw):
     base = dict(conf=CONF, iou=0.7, imgsz=IMGSZ, min_area_px=0, max_area_frac=1.0, max_masks=300)
     base.update(kw)
-    return SegmenterConfig(backend=backend, weights=str(weights), **base)
+    return segmenter_config(backend=backend, weights=str(weights), **base)
 
 
-def _check_masks(out: Masks, h: int, w: int, cfg: SegmenterConfig):
+def _check_masks(out: Masks, h: int, w: int, cfg: SegmenterBackend):
     assert isinstance(out, Masks)
     assert out.masks.dtype == bool and out.masks.shape[1:] == (h, w)
     assert out.boxes.dtype == np.float32 and out.boxes.shape == (len(out), 4)
@@ -98,7 +98,7 @@ def _check_masks(out: Masks, h: int, w: int, cfg: SegmenterConfig):
 def test_missing_weights_name_the_path(tmp_path, backend):
     missing = tmp_path / "weights" / "FastSAM-x.pt"
     with pytest.raises(FileNotFoundError, match=str(missing.name)) as err:
-        make_segmenter(SegmenterConfig(backend=backend, weights=str(missing)))
+        make_segmenter(segmenter_config(backend=backend, weights=str(missing)))
     assert str(missing) in str(err.value)
 
 

@@ -18,7 +18,7 @@ import pytest
 
 from services.keyframe_vl.segmenters import make_segmenter
 from services.keyframe_vl.segmenters.fastsam_onnx import export_fastsam_onnx
-from shared.config.keyframe_vl import SegmenterConfig
+from shared.config.keyframe_vl import SegmenterBackend, segmenter_config
 from shared.perception import Masks
 
 if importlib.util.find_spec("ultralytics") is None or importlib.util.find_spec("onnxruntime") is None:
@@ -37,10 +37,10 @@ and only costs more mask pixels)."""
 MIN_IOU = 0.99
 
 
-def _cfg(weights, backend: str, **kw) -> SegmenterConfig:
+def _cfg(weights, backend: str, **kw) -> SegmenterBackend:
     base = dict(conf=CONF, iou=0.9, imgsz=IMGSZ, min_area_px=100, max_area_frac=0.95, max_masks=300)
     base.update(kw)
-    return SegmenterConfig(backend=backend, weights=str(weights), **base)
+    return segmenter_config(backend=backend, weights=str(weights), **base)
 
 
 @pytest.fixture(scope="module")

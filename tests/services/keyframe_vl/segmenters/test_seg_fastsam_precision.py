@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from services.keyframe_vl.segmenters import make_segmenter
-from shared.config.keyframe_vl import SegmenterConfig
+from shared.config.keyframe_vl import segmenter_config
 from shared.perception import KeyframeImage
 
 pytest.importorskip("ultralytics")
@@ -21,7 +21,7 @@ def weights(tmp_path_factory):
 
 
 def _segment(weights, precision: str, image: KeyframeImage):
-    cfg = SegmenterConfig(backend="fastsam", weights=str(weights), imgsz=320, conf=0.4, min_area_px=0, precision=precision)
+    cfg = segmenter_config(backend="fastsam", weights=str(weights), imgsz=320, conf=0.4, min_area_px=0, precision=precision)
     seg = make_segmenter(cfg, device="cpu")
     return seg, seg.segment(image)
 

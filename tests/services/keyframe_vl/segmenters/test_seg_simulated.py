@@ -10,7 +10,7 @@ from seg_room import render_room, truth
 
 from services.keyframe_vl.segmenters import make_segmenter
 from services.keyframe_vl.segmenters.simulated import SimulatedSegmenter
-from shared.config.keyframe_vl import SegmenterConfig, SimulatedSegmenterNoise
+from shared.config.keyframe_vl import SegmenterBackend, SimulatedSegmenterNoise, segmenter_config
 from shared.datasets.ground_truth import GroundTruthError
 from shared.eval.segmenter import mean_best_iou
 from shared.perception import KeyframeImage
@@ -24,7 +24,7 @@ TRUTH = truth(render_room())
 """The room fixture's ids as frames 0-31: the segmenter reads them by frame index."""
 
 
-def simulated(cfg: SegmenterConfig) -> SimulatedSegmenter:
+def simulated(cfg: SegmenterBackend) -> SimulatedSegmenter:
     return SimulatedSegmenter(cfg, TRUTH)
 
 
@@ -36,7 +36,7 @@ def _gt_masks(instances, cfg):
 
 @pytest.mark.parametrize("min_area_px", [0, 1500])
 def test_zero_noise_reproduces_ground_truth(room, min_area_px):
-    cfg = SegmenterConfig(backend="simulated", noise=ZERO, min_area_px=min_area_px, max_area_frac=1.0)
+    cfg = segmenter_config(backend="simulated", noise=ZERO, min_area_px=min_area_px, max_area_frac=1.0)
     out = simulated(cfg).segment(room)
     got = {tuple(np.flatnonzero(m.ravel())) for m in out.masks}
     assert got == _gt_masks(room.instances, cfg)
@@ -46,7 +46,7 @@ def test_zero_noise_reproduces_ground_truth(room, min_area_px):
 
 
 def test_default_noise_is_within_band(room):
-    seg = simulated(SegmenterConfig(backend="simulated"))
+    seg = simulated(segmenter_config(backend="simulated"))
     values = []
     for i in range(12):
         out = seg.segment(dataclasses.replace(room, frame_index=i))
@@ -57,7 +57,7 @@ def test_default_noise_is_within_band(room):
 
 
 def test_deterministic_per_seed_and_frame(room):
-    cfg = SegmenterConfig(backend="simulated", noise=SimulatedSegmenterNoise(spurious_per_frame=2.0, split_prob=0.3))
+    cfg = segmenter_config(backend="simulated", noise=SimulatedSegmenterNoise(spurious_per_frame=2.0, split_prob=0.3))
     a = simulated(cfg).segment(room)
     b = simulated(cfg).segment(room)
     np.testing.assert_array_equal(a.masks, b.masks)
@@ -72,7 +72,7 @@ def test_each_noise_kind_acts(room):
     base = ZERO.model_copy()
 
     def run(**noise):
-        cfg = SegmenterConfig(backend="simulated", noise=base.model_copy(update=noise), min_area_px=0, max_area_frac=1.0)
+        cfg = segmenter_config(backend="simulated", noise=base.model_copy(update=noise), min_area_px=0, max_area_frac=1.0)
         return simulated(cfg).segment(room)
 
     n_gt = len(np.unique(room.instances))
@@ -94,12 +94,12 @@ def test_ground_truth_comes_from_its_source_not_the_image(room, tmp_path):
     """No ground truth rides on the image: without a source the segmenter refuses to be made,
     naming the config key, and a keyframe its source does not know is refused by index."""
     with pytest.raises(GroundTruthError, match="keyframe_vl.segmenter.ground_truth is not set"):
-        make_segmenter(SegmenterConfig(backend="simulated"))
+        make_segmenter(segmenter_config(backend="simulated"))
     with pytest.raises(GroundTruthError, match="keyframe_vl.segmenter.ground_truth: .* is not a folder"):
-        make_segmenter(SegmenterConfig(backend="simulated", ground_truth=str(tmp_path / "nowhere")))
+        make_segmenter(segmenter_config(backend="simulated", ground_truth=str(tmp_path / "nowhere")))
     with pytest.raises(GroundTruthError, match="no instances/"):
-        make_segmenter(SegmenterConfig(backend="simulated", ground_truth=str(tmp_path)))
-    seg = simulated(SegmenterConfig(backend="simulated"))
+        make_segmenter(segmenter_config(backend="simulated", ground_truth=str(tmp_path)))
+    seg = simulated(segmenter_config(backend="simulated"))
     with pytest.raises(GroundTruthError, match="keyframe 99: .*frame_index 99"):
         seg.segment(KeyframeImage(frame_index=99, rgb=room.rgb))
     with pytest.raises(GroundTruthError, match="keyframe 0: .*64x48"):
