@@ -29,9 +29,8 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 ROOT = Path(__file__).resolve().parents[1]
-LAUNCH = ROOT / "deploy" / "demo.yaml"
-PAPER = ROOT / "deploy" / "configs" / "paper.yaml"
-SYNTHETIC = ROOT / "deploy" / "configs" / "synthetic.yaml"
+LAUNCH = "demo"
+"""The launch file (shared/presets.py): ``deploy/demo.yaml``, installed with the package."""
 TEXT_QUERIES = 6
 
 
@@ -41,12 +40,14 @@ def choose_config(config: Path | None) -> tuple[Path, str]:
         return Path(config), "given with --config"
     from services.models.check import check_models
     from shared.config import load_config
+    from shared.presets import config_path
 
-    check = check_models(load_config(PAPER), load=False)
+    paper, synthetic = config_path("paper"), config_path("synthetic")
+    check = check_models(load_config(paper), load=False)
     if check["ok"]:
-        return PAPER, "the paper's models (FastSAM-x, OpenCLIP ViT-H-14, DINOv3 ViT-S+): their weights are present"
+        return paper, "the paper's models (FastSAM-x, OpenCLIP ViT-H-14, DINOv3 ViT-S+): their weights are present"
     missing = ", ".join(Path(m).name for m in check["missing"]) or "weights"
-    return SYNTHETIC, f"simulated segmenter and CLIP, classical dense features: no model weights here ({missing} missing)"
+    return synthetic, f"simulated segmenter and CLIP, classical dense features: no model weights here ({missing} missing)"
 
 
 def pick_queries(seq: Path, n: int = TEXT_QUERIES) -> list[str]:
@@ -93,13 +94,20 @@ def image_query(seq: Path, out_png: Path) -> tuple[np.ndarray, str]:
 
 
 def _git_commit() -> str:
+    if not (ROOT / ".git").exists():  # an installed package, not a checkout
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            return f"trackgraph {version('trackgraph')}"
+        except PackageNotFoundError:
+            return "unknown"
     try:
         return subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5).stdout.strip() or "unknown"
     except (OSError, subprocess.SubprocessError):
         return "unknown"
 
 
-def run_demo(out: Path, *, preset: str = "demo", seed: int = 0, config: Path | None = None, launch_file: Path = LAUNCH) -> dict[str, Any]:
+def run_demo(out: Path, *, preset: str = "demo", seed: int = 0, config: Path | None = None, launch_file: Path | str = LAUNCH) -> dict[str, Any]:
     """Everything above; returns the report's figures and writes ``out/report.md``."""
     from services.launch import LaunchError, Supervisor, plan_launch
     from services.query.client import QueryClient

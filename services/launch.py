@@ -30,11 +30,12 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from shared.config.base import ConfigError, deep_merge, save_resolved, validate
+from shared.config.base import ConfigError, save_resolved, validate
 from shared.config.launch import LaunchConfig, RestartPolicy, ServiceSpec, load_launch
 from shared.config.root import TrackGraphConfig
 from shared.procfs import status_mb
@@ -70,14 +71,22 @@ class Plan:
 
 
 def plan_launch(
-    path: Path, *, sequence: Path | None = None, out: Path | None = None, log_dir: Path | None = None, config: Path | None = None
+    path: Path | str,
+    *,
+    sequence: Path | None = None,
+    out: Path | None = None,
+    log_dir: Path | None = None,
+    config: Path | str | None = None,
+    sets: Sequence[str] = (),
 ) -> Plan:
-    """Read ``path``, write the resolved system config, and build every command line;
-    ``config`` replaces the file's system config."""
+    """Read ``path`` (a launch file, or its name: ``local``), write the resolved system config,
+    and build every command line; ``config`` (a file or a preset's name) replaces the file's
+    system config, and ``sets`` (``KEY=VALUE``) come after the file's own ``set`` items."""
     from services.mapping import prepare_config
     from shared.config import load_config
+    from shared.presets import launch_path
 
-    path = Path(path)
+    path = launch_path(path)
     launch = load_launch(path)
     here = path.parent
 
@@ -101,12 +110,17 @@ def plan_launch(
     for zc in [launch.zenoh_config] + [s.zenoh_config for s in launch.services]:
         if zc is not None and not rel(zc).is_file():
             raise ConfigError(f"{path}: zenoh config {rel(zc)} does not exist")
-    base = load_config(Path(config) if config is not None else rel(launch.config))
-    data = deep_merge(base.model_dump(mode="json"), launch.overrides)
+    if config is None:
+        config = rel(launch.config) if rel(launch.config).is_file() else launch.config
+    try:
+        base = load_config(config, [*launch.set, *sets])
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+    data = base.model_dump(mode="json")
     data["transport"] = {**data["transport"], "mode": "client", "connect": list(launch.connect), "listen": []}
     if launch.zenoh_config is not None:
         data["transport"]["zenoh_config_file"] = str(rel(launch.zenoh_config))
-    system = validate(TrackGraphConfig, data, f"{path}: overrides")
+    system = validate(TrackGraphConfig, data, f"{path}: transport")
     if sequence is not None:
         system = prepare_config(system, Path(sequence))
     config_path = save_resolved(system, log_dir / "config.yaml")
@@ -542,9 +556,17 @@ def _kill(popen: subprocess.Popen, sig: int, timeout: float) -> None:
         popen.wait(10)
 
 
-def run_launch(path: Path, *, sequence: Path | None = None, out: Path | None = None, log_dir: Path | None = None, status: bool = True) -> dict[str, Any]:
+def run_launch(
+    path: Path | str,
+    *,
+    sequence: Path | None = None,
+    out: Path | None = None,
+    log_dir: Path | None = None,
+    status: bool = True,
+    sets: Sequence[str] = (),
+) -> dict[str, Any]:
     """Plan and supervise a launch file until it ends; SIGINT/SIGTERM/SIGHUP stop it cleanly."""
-    plan = plan_launch(path, sequence=sequence, out=out, log_dir=log_dir)
+    plan = plan_launch(path, sequence=sequence, out=out, log_dir=log_dir, sets=sets)
     sup = Supervisor(plan, status=status)
     install_stop_handlers(sup.stop_event.set)  # SIGHUP too: a closed terminal stops the launch in order
     return sup.run()

@@ -17,6 +17,7 @@ from __future__ import annotations
 import difflib
 import importlib
 import logging
+import sys
 import threading
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -41,6 +42,7 @@ class Registry(Generic[T]):
         """Modules whose import registers the built-in entries, in the order names are listed."""
         self._group = f"trackgraph.{kind.replace(' ', '_')}s" if entry_points else None
         self._entries: dict[str, T] = {}
+        self._origin: dict[str, str] = {}  # name -> the module that registered it
         self._loaded = False
         self._lock = threading.RLock()
 
@@ -49,12 +51,15 @@ class Registry(Generic[T]):
         decorates. A name registered twice with another entry is an error: two modules would
         otherwise fight over it depending on import order."""
 
+        origin = sys._getframe(1).f_globals.get("__name__", "")
+
         def add(obj: T) -> T:
             with self._lock:
                 old = self._entries.get(name)
                 if old is not None and old is not obj and _qualname(old) != _qualname(obj):
                     raise ValueError(f"{self.kind} {name!r} is registered twice ({_qualname(old)} and {_qualname(obj)})")
                 self._entries[name] = obj
+                self._origin[name] = origin
             return obj
 
         return add if entry is None else add(entry)
@@ -63,6 +68,7 @@ class Registry(Generic[T]):
         """Remove ``name`` (tests that register a toy entry clean up with this)."""
         with self._lock:
             self._entries.pop(name, None)
+            self._origin.pop(name, None)
 
     def _load(self) -> None:
         if self._loaded:
@@ -83,9 +89,12 @@ class Registry(Generic[T]):
                         log.warning("%s plugin %s (%s) failed to load: %s", self.kind, ep.name, ep.value, exc)
 
     def names(self) -> tuple[str, ...]:
-        """Every registered name, built-ins first in ``modules`` order."""
+        """Every registered name: the built-ins in ``modules`` order (whichever was imported
+        first), then the others as they came."""
         self._load()
-        return tuple(self._entries)
+        rank = {m: i for i, m in enumerate(self.modules)}
+        order = {n: i for i, n in enumerate(self._entries)}
+        return tuple(sorted(self._entries, key=lambda n: (rank.get(self._origin.get(n, ""), len(rank)), order[n])))
 
     def get(self, name: str) -> T:
         """The entry of ``name``; :class:`UnknownName` lists the choices and the nearest one."""
@@ -110,8 +119,7 @@ class Registry(Generic[T]):
         return iter(self.names())
 
     def items(self) -> list[tuple[str, T]]:
-        self._load()
-        return list(self._entries.items())
+        return [(n, self._entries[n]) for n in self.names()]
 
 
 def _qualname(obj: object) -> str:

@@ -19,7 +19,6 @@ from typing import Any
 from services.bench.rate import live_trial, search_rate, trial_frames
 from services.bench.report import markdown, plots
 from services.bench.runs import (
-    REPO,
     BenchError,
     evaluate_map,
     git_commit,
@@ -27,11 +26,13 @@ from services.bench.runs import (
     map_run,
     write_variant,
 )
+from shared.config.base import ConfigError
 from shared.io import atomic_write_text
 
 log = logging.getLogger(__name__)
 
-DEFAULT_CONFIG = REPO / "deploy" / "configs" / "synthetic.yaml"
+DEFAULT_CONFIG = "synthetic"
+"""The preset a bench without ``--config`` runs (shared/presets.py)."""
 VARIANTS: dict[str, dict] = {
     "3cm": {"fusion": {"tsdf": {"voxel_size": 0.03}}},
     "5cm": {"fusion": {"tsdf": {"voxel_size": 0.05}}},
@@ -162,10 +163,12 @@ def run_bench(
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    configs = [Path(c) for c in configs] or [DEFAULT_CONFIG]
-    for c in configs:
-        if not c.is_file():
-            raise BenchError(f"{c}: no such config file")
+    from shared.presets import config_path
+
+    try:
+        configs = [config_path(c) for c in configs] or [config_path(DEFAULT_CONFIG)]
+    except ConfigError as exc:
+        raise BenchError(str(exc)) from None
     seq, gt_dir, seq_name = prepare_sequence(out, preset, seed, sequence, gt)
     names = _config_names(configs)
     steps = len(configs) * (len(VARIANTS) + 2 * max(rate_trials, 0))

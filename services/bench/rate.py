@@ -109,6 +109,7 @@ def start_live_system(
     (plan, supervisor, thread). Extra launch-file keys go in ``launch``."""
     from services.launch import Supervisor, plan_launch
     from shared.config.base import deep_merge
+    from shared.config.overrides import as_sets
 
     work.mkdir(parents=True, exist_ok=True)
     port = free_port()
@@ -116,7 +117,7 @@ def start_live_system(
         "config": str(Path(config).resolve()),  # the launch file lives in ``work``
         # Shared memory has dropped messages under load in some Zenoh versions: a drop here
         # must be the system's, not the transport's.
-        "overrides": deep_merge({"transport": {"shared_memory": False}}, overrides),
+        "set": as_sets(deep_merge({"transport": {"shared_memory": False}}, overrides)),
         "connect": [f"tcp/127.0.0.1:{port}"],
         "listen": [f"tcp/127.0.0.1:{port}"],
         "services": services,

@@ -99,7 +99,10 @@ def machine() -> dict[str, Any]:
 
 
 def git_commit() -> str | None:
-    """The checkout's commit, with ``-dirty`` when it has uncommitted changes; None outside git."""
+    """The checkout's commit, with ``-dirty`` when it has uncommitted changes; None outside git
+    (an installed package)."""
+    if not (REPO / ".git").exists():
+        return None
     try:
         sha = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True, check=True).stdout.strip()
         dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO, capture_output=True, text=True, check=True).stdout.strip()

@@ -60,8 +60,9 @@ def _model_at(model: type[BaseModel] | None, path: tuple, data: Any = None) -> t
         ann = getattr(field, "annotation", None)
         model = ann if isinstance(ann, type) and issubclass(ann, BaseModel) else None
         data = data.get(str(part)) if isinstance(data, dict) else None
-        if model is not None and "backend" in model.model_fields and isinstance(data, dict):
-            model = _backend_of(model, data) or model
+        if model is not None and "backend" in model.model_fields:
+            # A section not in the data yet takes its default backend.
+            model = _backend_of(model, data if isinstance(data, dict) else {}) or model
     return model
 
 

@@ -73,11 +73,12 @@ class LaunchConfig(StrictModel):
     """A set of processes that together make (part of) a TrackGraph system."""
 
     config: str
-    """The system config every service gets (``deploy/configs/*.yaml``), relative to the
-    launch file."""
-    overrides: dict[str, Any] = Field(default_factory=dict)
-    """Nested keys laid over ``config`` for this launch (e.g. ``{tracker: {wait_for_masks:
-    true}}``); validated like the config itself."""
+    """The system config every service gets: a file relative to the launch file
+    (``configs/paper.yaml``) or a preset's name (``paper``; shared/presets.py)."""
+    set: list[str] = Field(default_factory=list)
+    """``KEY=VALUE`` items laid over ``config`` for this launch, as ``--set`` does on the
+    command line (e.g. ``[tracker.wait_for_masks=true]``); every key is checked against the
+    config, and ``trackgraph launch --set`` items come after these."""
     connect: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
     """Router endpoint(s) the services connect to."""
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
@@ -109,6 +110,13 @@ class LaunchConfig(StrictModel):
     exit_when_finished: bool = True
     """When every finite service has finished, stop the others and exit 0 (a replayed
     sequence). False keeps the system up until Ctrl-C."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_overrides(cls, data: Any) -> Any:
+        if isinstance(data, dict) and "overrides" in data:
+            raise ValueError("'overrides' is replaced by 'set': a list of KEY=VALUE items, e.g. set: [tracker.wait_for_masks=true]")
+        return data
 
     @model_validator(mode="after")
     def _consistent(self) -> LaunchConfig:

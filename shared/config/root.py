@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from pathlib import Path
 
 from pydantic import Field, field_validator
 
-from shared.config.base import ConfigError, StrictModel, load_model
+from shared.config.base import ConfigError, StrictModel, load_model, read_yaml, validate
 from shared.config.fusion import FusionConfig
 from shared.config.keyframe_vl import KeyframeVLConfig
 from shared.config.query import QueryConfig
@@ -83,6 +84,15 @@ class TrackGraphConfig(StrictModel):
         return TrackGraphConfig.model_validate(data) if changed else self
 
 
-def load_config(path: str | Path) -> TrackGraphConfig:
-    """Load a system config from YAML; missing keys take the paper's defaults."""
-    return load_model(TrackGraphConfig, path)
+def load_config(path: str | Path, sets: Sequence[str] = ()) -> TrackGraphConfig:
+    """Load a system config: a YAML file, or a preset by name (``paper``; shared/presets.py),
+    with ``sets`` (``KEY=VALUE`` items, shared/config/overrides.py) laid on top; missing keys
+    take the paper's defaults. Errors name the file, the key and, for ``--set``, the item."""
+    from shared.config.overrides import apply_sets
+    from shared.presets import config_path
+
+    file = config_path(path)
+    if not sets:
+        return load_model(TrackGraphConfig, file)
+    data = apply_sets(read_yaml(file), sets, TrackGraphConfig)
+    return validate(TrackGraphConfig, data, f"{file} with --set {' '.join(sets)}")

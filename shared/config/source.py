@@ -2,11 +2,19 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import Field
+from pydantic import AfterValidator, Field
 
 from shared.config.base import StrictModel
+
+
+def _registered_dataset(name: str) -> str:
+    from shared.datasets.base import DATASETS
+
+    if name not in DATASETS:
+        raise ValueError(DATASETS.unknown(name))
+    return name
 
 
 class RosbagConfig(StrictModel):
@@ -41,7 +49,7 @@ class TumConfig(StrictModel):
 class SourceConfig(StrictModel):
     """Dataset replay settings of the source service and of ``trackgraph map``."""
 
-    dataset: Literal["replica", "scannetpp", "hm3d", "tum", "rosbag"] = "replica"
+    dataset: Annotated[str, AfterValidator(_registered_dataset)] = "replica"
     """Reader for the sequence folder (docs/architecture.md, "Input formats")."""
     path: str | None = None
     """Sequence folder or bag; the command line's SEQ_DIR overrides it."""

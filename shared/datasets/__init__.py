@@ -1,44 +1,30 @@
-"""Dataset readers (docs/architecture.md, "Input formats") behind one factory, :func:`open_sequence`."""
+"""Dataset readers (docs/architecture.md, "Input formats") behind one factory, :func:`open_sequence`,
+and one registry, ``DATASETS``: a reader is a :class:`SequenceReader` in a module of its own,
+registered here with one line."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 from shared.config.source import SourceConfig
-from shared.datasets.base import DatasetError, SequenceReader
-
-DATASETS = ("replica", "scannetpp", "hm3d", "tum", "rosbag")
+from shared.datasets.base import DATASETS, DatasetError, SequenceReader
+from shared.registry import load_object
 
 __all__ = ["DATASETS", "DatasetError", "SequenceReader", "open_sequence"]
 
+DATASETS.register("replica", "shared.datasets.replica:ReplicaReader")
+DATASETS.register("scannetpp", "shared.datasets.scannetpp:ScanNetppReader")
+DATASETS.register("hm3d", "shared.datasets.hm3d:Hm3dReader")
+DATASETS.register("tum", "shared.datasets.tum:TumReader")
+DATASETS.register("rosbag", "shared.datasets.rosbag:RosbagReader")
+
 
 def open_sequence(path: Path | str, dataset: str = "replica", config: SourceConfig | None = None) -> SequenceReader:
-    """Open the sequence at ``path`` with the reader for ``dataset``.
+    """Open the sequence at ``path`` with the reader registered for ``dataset``.
 
     ``config`` supplies the TUM association limit and the ROS bag topics; the other readers
-    need nothing from it. Raises ValueError for an unknown dataset name, DatasetError for a
-    bad sequence.
+    need nothing from it. Raises ValueError for an unknown dataset name (naming the choices),
+    DatasetError for a bad sequence.
     """
-    cfg = config or SourceConfig()
-    if dataset == "replica":
-        from shared.datasets.replica import ReplicaReader
-
-        return ReplicaReader(path)
-    if dataset == "scannetpp":
-        from shared.datasets.scannetpp import ScanNetppReader
-
-        return ScanNetppReader(path)
-    if dataset == "hm3d":
-        from shared.datasets.hm3d import Hm3dReader
-
-        return Hm3dReader(path)
-    if dataset == "tum":
-        from shared.datasets.tum import TumReader
-
-        return TumReader(path, cfg.tum)
-    if dataset == "rosbag":
-        # rosbags is only imported for bags: it is a heavy import the other readers never need.
-        from shared.datasets.rosbag import RosbagReader
-
-        return RosbagReader(path, cfg.rosbag)
-    raise ValueError(f"unknown dataset {dataset!r}; choose one of: {', '.join(DATASETS)}")
+    reader: type[SequenceReader] = load_object(DATASETS.get(dataset))
+    return reader.open(path, config or SourceConfig())

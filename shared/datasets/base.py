@@ -10,12 +10,21 @@ from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from pathlib import Path
 from types import TracebackType
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import numpy as np
 
 from shared.geometry import Intrinsics, Pose
 from shared.messages.frames import Frame
+from shared.registry import Registry
+
+if TYPE_CHECKING:
+    from shared.config.source import SourceConfig
+
+DATASETS: Registry[str] = Registry("dataset", modules=("shared.datasets",))
+"""Dataset readers by name (``source.dataset``, ``--dataset``): ``"module:ReaderClass"``,
+registered in shared/datasets/__init__.py and imported only when a sequence is opened (the bag
+reader imports rosbags, which the other readers never need)."""
 
 
 class DatasetError(ValueError):
@@ -28,6 +37,12 @@ class SequenceReader(ABC):
     root: Path
     intrinsics: Intrinsics
     depth_scale: float
+
+    @classmethod
+    def open(cls, path: Path | str, config: SourceConfig) -> SequenceReader:
+        """The reader of the sequence at ``path``; ``config`` is the source config, for the
+        readers that take options from it (TUM's association limit, a bag's topics)."""
+        return cls(path)
 
     @abstractmethod
     def __len__(self) -> int:

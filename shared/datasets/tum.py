@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from shared.config.source import TumConfig
+from shared.config.source import SourceConfig, TumConfig
 from shared.datasets.base import DatasetError, SequenceReader
 from shared.datasets.files import (
     check_index,
@@ -85,6 +85,10 @@ def read_groundtruth(path: Path) -> tuple[np.ndarray, list[Pose]]:
 
 class TumReader(SequenceReader):
     """TUM RGB-D sequence; see the module docstring for association and intrinsics."""
+
+    @classmethod
+    def open(cls, path: Path | str, config: SourceConfig) -> TumReader:
+        return cls(path, config.tum)
 
     def __init__(self, root: Path | str, config: TumConfig | None = None) -> None:
         self.root = Path(root)

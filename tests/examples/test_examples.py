@@ -144,8 +144,7 @@ def _launch(tmp_path: Path, services: list[dict], frames: int, **extra) -> Path:
     port = _free_port()
     doc = {
         "config": str(SYNTHETIC),
-        "overrides": {"tracker": {"wait_for_masks": True, "device": "cpu"}, "transport": {"shared_memory": False},
-                      "source": {"max_frames": frames}},  # fmt: skip
+        "set": ["tracker.wait_for_masks=true", "tracker.device=cpu", "transport.shared_memory=false", f"source.max_frames={frames}"],
         "connect": [f"tcp/127.0.0.1:{port}"],
         "listen": [f"tcp/127.0.0.1:{port}"],
         "services": services,

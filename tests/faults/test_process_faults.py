@@ -20,6 +20,7 @@ import pytest
 import yaml
 
 from services.launch import Supervisor, plan_launch
+from shared.config.overrides import as_sets
 from shared.messages.frames import FrameAck
 from shared.messages.keyframes import KeyframeMasks
 from shared.topics import Topics
@@ -42,7 +43,7 @@ def write_launch(tmp: Path, port: int, services: list[dict], overrides: dict | N
         base[k] = {**base.get(k, {}), **v}
     doc = {
         "config": str(SYNTHETIC),
-        "overrides": base,
+        "set": as_sets(base),
         "connect": [f"tcp/127.0.0.1:{port}"],
         "listen": [f"tcp/127.0.0.1:{port}"],
         "services": services,

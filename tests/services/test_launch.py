@@ -39,7 +39,7 @@ def write_launch(tmp: Path, services: list[dict], **extra) -> Path:
     port = _free_port()
     doc = {
         "config": str(SYNTHETIC),
-        "overrides": {"tracker": {"wait_for_masks": True, "device": "cpu"}, "transport": {"shared_memory": False}},
+        "set": ["tracker.wait_for_masks=true", "tracker.device=cpu", "transport.shared_memory=false"],
         "connect": [f"tcp/127.0.0.1:{port}"],
         "listen": [f"tcp/127.0.0.1:{port}"],
         "services": services,
