@@ -237,9 +237,9 @@ def _time_hyp(hyp: HypothesisTSDF, depth, rgb, K, T, tracks, gamma) -> tuple[flo
 
 
 def run_voxel(voxel: float, frames: Any, backend: str) -> dict:
-    cfg = TSDFConfig(voxel_size=voxel)
+    cfg = TSDFConfig(voxel_size=voxel, vote_backend=backend)
     plain = PlainTSDF(cfg)
-    hyp = HypothesisTSDF(cfg, device="cpu", backend=backend)
+    hyp = HypothesisTSDF(cfg, device="cpu")
     t_plain, t_hyp, t_part, t_window, t_tsdf = [], [], [], [], []
     replaced = 0
     for i, (depth, rgb, tracks, K, T) in enumerate(frames()):

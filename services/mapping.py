@@ -132,7 +132,7 @@ def run_map(
         while source.tick(time.monotonic()) is not None:
             bus.drain()
         bus.drain()
-        _wait_finished(bus, tracker, fusion, cfg.tracker.keyframe_timeout_s)
+        _wait_finished(bus, tracker, fusion, cfg.tracker.keyframe_timeout_s + cfg.fusion.end_grace_s)
         seconds = time.perf_counter() - t_start
     finally:
         if bar is not None:
@@ -169,13 +169,12 @@ def _serve_embed(bus, encoder, cache_size: int) -> None:
     bus.serve(Topics(bus.robot_id).vl_embed, EmbedRequest, EmbedReply, lambda env: embedder.embed(env.body))
 
 
-def _wait_finished(bus, tracker, fusion, keyframe_timeout_s: float) -> None:
+def _wait_finished(bus, tracker, fusion, timeouts_s: float) -> None:
     """Everything the last frame set off is delivered; the map is finished unless a stage
     still waits on a time-out (a frame that failed in the tracker or in fusion): tick them
-    until it is, within their time-outs."""
-    from services.fusion.session import END_GRACE_S
-
-    deadline = time.monotonic() + keyframe_timeout_s + END_GRACE_S + FINISH_MARGIN_S
+    until it is, within their time-outs (``timeouts_s``: ``tracker.keyframe_timeout_s`` plus
+    ``fusion.end_grace_s``)."""
+    deadline = time.monotonic() + timeouts_s + FINISH_MARGIN_S
     while not fusion.finished.is_set():
         now = time.monotonic()
         if now > deadline:

@@ -41,10 +41,6 @@ from shared.messages.poses import PoseCorrection
 
 log = logging.getLogger(__name__)
 
-SURFACE_CELL_M = 0.05
-"""Resolution of the whole-map surface sample that places and rooms are built from."""
-
-
 @dataclass
 class CorrectionCounters:
     """Pose corrections the core took (the fusion service's ``corrections`` status figure)."""
@@ -116,7 +112,7 @@ class FusionCore:
         the view shows, to give it to a room (by xy)."""
         self.room_vocabulary: RoomVocabulary | None = None
         """The room labels' text embeddings; set by the session once ``vl/embed`` answers."""
-        self.surface = SurfaceSample(SURFACE_CELL_M)
+        self.surface = SurfaceSample(cfg.graph.surface_cell_m)
         self.book = PoseBook()
         """Raw and corrected pose of every fused frame (:mod:`services.fusion.poses`)."""
         self.tsdf.epoch_motion = self.book.epoch_motion
@@ -391,7 +387,8 @@ class FusionCore:
             return None
         t0 = time.perf_counter()
         old = self.tsdf
-        fresh = HypothesisTSDF(self.cfg.tsdf, device=old.device_name.lower(), backend=old.backend, mesh_weight_threshold=old.mesh_weight_threshold)
+        same_vote = self.cfg.tsdf.model_copy(update={"vote_backend": old.backend})
+        fresh = HypothesisTSDF(same_vote, device=old.device_name.lower(), mesh_weight_threshold=old.mesh_weight_threshold)
         fresh.epoch, fresh.epoch_motion = self.book.epoch, self.book.epoch_motion
         for tf in self.observations:
             fr = tf.frame
@@ -417,8 +414,8 @@ class FusionCore:
         return stats
 
     def surface_points(self) -> Annotated[np.ndarray, "(N, 3) float32"]:
-        """One point per 5 cm cell of everything ever meshed: places and rooms must cover the
-        whole map, not only the active window."""
+        """One point per ``fusion.graph.surface_cell_m`` cell of everything ever meshed:
+        places and rooms must cover the whole map, not only the active window."""
         return self.surface.points
 
     # ------------------------------------------------------------------ persistence

@@ -12,7 +12,7 @@ import logging
 from pathlib import Path
 
 from services.fusion.core import FusionCore
-from services.fusion.session import END_GRACE_S, FusionSession
+from services.fusion.session import FusionSession
 from shared.config.base import save_resolved
 from shared.config.root import TrackGraphConfig
 from shared.graph.store import MapStore
@@ -22,7 +22,7 @@ from shared.transport import ZenohBus
 
 log = logging.getLogger(__name__)
 
-__all__ = ["END_GRACE_S", "FusionNode"]
+__all__ = ["FusionNode"]
 
 TICK_S = 0.2
 """How often the end of the sequence and the snapshot interval are looked at."""

@@ -2,7 +2,7 @@
 ``graph/delta`` out; ``frames/ack`` for every tracked frame fused, already in the map, or
 failed; the ``graph/snapshot`` queryable. The map is finished when the tracker's
 ``tracks/end`` has come and every frame and feature message it announces is in (or
-``END_GRACE_S`` after it, with a warning).
+``fusion.end_grace_s`` after it, with a warning).
 
 With a :class:`~shared.graph.store.MapStore` and a map folder it also keeps the map on disk:
 resumes from the newest snapshot, saves one every ``fusion.snapshot_interval_s``, and at the
@@ -70,9 +70,6 @@ ROOM_LABELS_TIMEOUT_S = 2.0
 """Time-out of each ``vl/embed`` request for a room label."""
 ROOM_LABELS_RETRY_S = (2.0, 60.0)
 """First wait after a failed fetch of the room labels, and the cap it doubles up to."""
-
-END_GRACE_S = 15.0
-"""After ``tracks/end``, how long fusion waits for announced messages still on their way."""
 
 WATERMARK_S = 1.0
 """How often fusion repeats its newest ack while nothing new comes: a restarted fusion
@@ -395,7 +392,7 @@ class FusionSession(Session):
         frames_in = self.core.last_frame_index >= end.last_frame_index
         feats_in = end.track_features_published is None or self.features_in >= end.track_features_published
         if not (frames_in and feats_in):
-            if now - self._end_at < END_GRACE_S:
+            if now - self._end_at < self.cfg.fusion.end_grace_s:
                 return
             log.warning(
                 "finishing without everything the tracker announced: frames up to %d (have %d), %s feature messages (have %d)",

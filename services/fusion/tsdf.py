@@ -18,7 +18,8 @@ block is a voxel with no hypothesis) and ``hyp_w`` (K float32 accumulated weight
 
 The grid contains only the active window; :meth:`HypothesisTSDF.update_window` moves blocks
 out to and back from a host archive (:mod:`services.fusion.window`). On CUDA the grid lives on
-the GPU and the vote runs in torch on the same memory (DLPack); on CPU it runs in numba.
+the GPU and the vote runs in torch on the same memory (DLPack); on CPU it runs in numba
+(``fusion.tsdf.vote_backend``).
 """
 
 from __future__ import annotations
@@ -142,12 +143,11 @@ class HypothesisTSDF:
         self,
         cfg: TSDFConfig,
         device: str = "auto",
-        backend: str = "auto",
         mesh_weight_threshold: float = MESH_WEIGHT_THRESHOLD,
     ) -> None:
         """``device``: 'auto' (CUDA when both open3d and torch have it), 'cpu' or 'cuda[:N]'.
-        ``backend`` of the vote: 'auto' (numba on CPU when installed, else torch), 'numba' or
-        'torch'."""
+        The vote's backend is ``cfg.vote_backend``: 'auto' (numba on CPU when installed, else
+        torch), 'numba' or 'torch'; :attr:`backend` is the one chosen."""
         self.cfg = cfg
         self.mesh_weight_threshold = float(mesh_weight_threshold)
         self._o3d = import_open3d()
@@ -155,11 +155,12 @@ class HypothesisTSDF:
         self.device_name = _resolve_device(device)
         self._dev = self._o3c.Device(self.device_name)
         on_cuda = self.device_name.startswith("CUDA")
+        backend = cfg.vote_backend
         if backend == "auto":
             backend = "numba" if numba_available() and not on_cuda else "torch"
         if backend == "numba":
             if on_cuda:
-                raise ValueError("the numba vote runs on CPU; use backend='torch' on CUDA")
+                raise ValueError("the numba vote runs on CPU; use fusion.tsdf.vote_backend 'torch' or 'auto' on CUDA")
             self._vote: NumbaVote | TorchVote = NumbaVote()
         elif backend == "torch":
             if on_cuda:
@@ -169,7 +170,7 @@ class HypothesisTSDF:
                     raise RuntimeError("open3d runs on CUDA but torch has no CUDA for the vote")
             self._vote = TorchVote(("cuda:" + self.device_name.split(":")[1]) if on_cuda else "cpu")
         else:
-            raise ValueError(f"unknown backend {backend!r}; use 'auto', 'numba' or 'torch'")
+            raise ValueError(f"unknown fusion.tsdf.vote_backend {backend!r}; use 'auto', 'numba' or 'torch'")
         self.backend = backend
         self.res = cfg.block_resolution
         self.K = cfg.hypotheses

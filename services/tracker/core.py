@@ -48,8 +48,8 @@ preset (K_f = 24; 0.71 at K_f = 8) and at 0.63 on ``revisit``, whose camera come
 first room (ground-truth simulation of that policy). Tracks are retired for good, and reported
 in ``TrackFeatures.retired``, when the bounded lost pool (``tracks.MAX_LOST``) evicts its
 longest-lost track, or when a lost track's footprint overlaps a detection it did not get at
-IoU >= ``DUPLICATE_IOU`` (another track holds that surface now). Propagation, as in the paper,
-carries the active tracks only.
+IoU >= ``tracker.association.duplicate_iou`` (another track holds that surface now).
+Propagation, as in the paper, carries the active tracks only.
 
 Deviation (docs/method.md, T2): a static-world check on the first pass (``AssociationConfig.support_*``). Eq. 3 is
 purely 2D, so when an object leaves the view its propagated label slides onto whatever comes in
@@ -63,9 +63,10 @@ moves more than its own size between keyframes restarts; ``support_radius_m: 0``
 
 Deviation (docs/method.md, T3): fragments. A detection that no track took, that lies mostly inside the predicted
 mask of a track that took another detection, on that track's footprint and alike to the piece
-it took (``_absorb_fragments``), joins that track: a segmenter that cuts an object in two at one
-keyframe would otherwise leave a second track that competes for the whole object at the next
-(IDF1 0.679 to 0.717 and 0.75 to 0.54 switches on ``small`` at default noise).
+it took (``_absorb_fragments``, thresholds in ``tracker.fragments``), joins that track: a
+segmenter that cuts an object in two at one keyframe would otherwise leave a second track that
+competes for the whole object at the next (IDF1 0.679 to 0.717 and 0.75 to 0.54 switches on
+``small`` at default noise).
 
 Mask prototypes (eq. 2) use the backend's ``appearance_dims`` leading channels: all of
 DINOv3's, and the colour and texture blocks of the classical descriptor, whose depth block
@@ -112,17 +113,6 @@ from shared.perception import Masks
 
 log = logging.getLogger(__name__)
 
-DUPLICATE_IOU = 0.5
-"""A lost track whose projected footprint overlaps a detection it did not get at this IoU is
-retired (see ``TrackerCore._reidentify``)."""
-FRAGMENT_COVER = 0.5
-FRAGMENT_SIM = 0.85
-FRAGMENT_SUPPORT = 0.5
-"""A detection no track took joins the track that took another detection when at least
-``FRAGMENT_COVER`` of it lies in that track's predicted mask and the two detections' eq. 2
-prototypes have cosine at least ``FRAGMENT_SIM`` (above eq. 7's theta_sim of 0.8: classical features put a book on a table at 0.80-0.81), and at least
-``FRAGMENT_SUPPORT`` of its points lie on the track's footprint, see
-``TrackerCore._absorb_fragments``."""
 SINGLE_THREAD_MAX_CELLS = 3072
 """Patch grids up to this size (e.g. 48 x 64) propagate and upsample on one CPU thread."""
 
@@ -329,28 +319,29 @@ class TrackerCore:
         ids: list[int],
     ) -> int:
         """Detections left without a track that are a piece of an object whose track took
-        another piece: mostly (``FRAGMENT_COVER``) inside that track's predicted mask, mostly
-        on the surface the track was seen as before (``FRAGMENT_SUPPORT``, so a neighbour
-        that propagation labelled with the track does not join it), and alike (eq. 7's
-        theta_sim) to the piece it took. They join that track instead of
-        starting one, so a segmenter that cuts an object in two at one keyframe does not leave
-        a second track to compete for the whole object at the next. Fills ``ids`` in place;
-        returns how many joined."""
+        another piece: mostly (``tracker.fragments.cover``) inside that track's predicted mask,
+        mostly on the surface the track was seen as before (``tracker.fragments.support``, so a
+        neighbour that propagation labelled with the track does not join it), and alike
+        (``tracker.fragments.sim``, above eq. 7's theta_sim) to the piece it took. They join
+        that track instead of starting one, so a segmenter that cuts an object in two at one
+        keyframe does not leave a second track to compete for the whole object at the next.
+        Fills ``ids`` in place; returns how many joined."""
         slot_of = {tid: s + 1 for s, tid in enumerate(active)}
         taken = {ids[j]: j for j in range(len(ids)) if ids[j] in slot_of}
         joined = 0
+        frag, radius = self.cfg.fragments, self.cfg.association.support_radius_m
         for j in [j for j, tid in enumerate(ids) if tid < 0]:
             area = int(masks[j].sum())
             if area == 0 or not taken:
                 continue
             inside = np.bincount(predicted[masks[j]], minlength=len(active) + 1)
             best = max(taken, key=lambda tid: inside[slot_of[tid]])
-            if inside[slot_of[best]] < FRAGMENT_COVER * area:
+            if inside[slot_of[best]] < frag.cover * area:
                 continue
-            if float(det_feat[j] @ det_feat[taken[best]]) < FRAGMENT_SIM:
+            if float(det_feat[j] @ det_feat[taken[best]]) < frag.sim:
                 continue
             fp = self.book.tracks[best].footprint
-            if fp is not None and seen[j] is not None and support(fp, seen[j], self.cfg.association.support_radius_m) >= FRAGMENT_SUPPORT:
+            if fp is not None and seen[j] is not None and support(fp, seen[j], radius) >= frag.support:
                 ids[j] = best
                 joined += 1
         return joined
@@ -368,8 +359,9 @@ class TrackerCore:
         ``ids`` in place and returns how many tracks came back.
 
         A lost track that is not taken although its footprint overlaps a detection at
-        IoU >= ``DUPLICATE_IOU`` is retired: another track already holds that surface, and
-        keeping both would hand the object back and forth between them at later keyframes.
+        IoU >= ``tracker.association.duplicate_iou`` is retired: another track already holds
+        that surface, and keeping both would hand the object back and forth between them at
+        later keyframes.
         """
         if not self.book.lost or len(masks) == 0:
             return 0
@@ -394,7 +386,8 @@ class TrackerCore:
                 ids[unmatched[j]] = cands[i]
                 self.book.revive(cands[i])
                 revived.add(i)
-        duplicates = [tid for i, tid in enumerate(cands) if i not in revived and iou[i].max() >= DUPLICATE_IOU]
+        dup_iou = self.cfg.association.duplicate_iou
+        duplicates = [tid for i, tid in enumerate(cands) if i not in revived and iou[i].max() >= dup_iou]
         if duplicates:
             self.book.retire(duplicates)
         return len(revived)

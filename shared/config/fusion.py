@@ -48,6 +48,16 @@ class TSDFConfig(StrictModel):
     hypotheses, and long-term re-identification (III-E) merges the segments; a block archived
     again replaces its older archived copy. True brings archived blocks back into the active
     TSDF instead, hypotheses included."""
+    vote_backend: Literal["auto", "numba", "torch"] = "auto"
+    """Not in the paper: what runs the eq. 5 hypothesis vote (``services/fusion/hypotheses.py``;
+    the two give the same weights bit for bit). ``numba``: a kernel over Open3D's zero-copy
+    views, CPU only: 8-9 ms of vote per frame (analytic room of ``benchmarks/fusion.py``,
+    640x480, 3 cm voxels, this 2-core CPU at load 3-5), plus about 1.2 s of JIT compilation
+    on the first frame of a fresh install (cached on disk after). ``torch``: vectorised torch
+    on the grid's device, CUDA through DLPack (about 1.2 ms of GPU work per frame on an H100,
+    benchmarks/RESULTS.md); on the same CPU 69 ms a frame on one torch thread and about
+    1.1 s on two, where torch's thread pool and Open3D's spin against each other. ``auto``:
+    numba on a CPU when it is installed, torch otherwise (numba comes with the ``fusion`` extra)."""
 
     @model_validator(mode="after")
     def _depth_range(self) -> TSDFConfig:
@@ -137,6 +147,14 @@ class GraphConfig(StrictModel):
     """How a room's feature pools its two sources (not in the paper): this weight on the mean
     of the keyframe views taken from inside it, the rest on the mean CLIP feature of its
     segments. Either alone where the other is missing."""
+    surface_cell_m: float = Field(0.05, gt=0)
+    """Not in the paper: places and rooms are built from a sample of everything ever meshed
+    (active window and archive), one point kept per cube of this edge. 0.05 m is half the
+    free-space grid's 0.1 m cell (``FreeSpaceParams.resolution_m``,
+    ``services/fusion/places.py``), so a surface that crosses a grid cell leaves points in
+    it, and is the 0.05 m the paper downsamples output point clouds to for evaluation. The
+    sample, kept whole in memory and in snapshots, grows about four-fold per halving
+    (surfaces are 2D)."""
 
 
 class JournalConfig(StrictModel):
@@ -197,3 +215,10 @@ class FusionConfig(StrictModel):
     reorder_capacity: int = Field(64, ge=1)
     """Not in the paper: the most tracker messages held waiting for their turn (a full-size
     tracked frame is a few MB); past this the missing ones are given up."""
+    end_grace_s: float = Field(15.0, gt=0)
+    """Not in the paper: after the tracker's ``tracks/end``, how long fusion waits for the
+    frames and feature messages it announces that are still on their way; past this the map
+    is finished without them, with a warning (``trackgraph map`` waits this long more than
+    ``tracker.keyframe_timeout_s`` too). 15 s is chosen, not measured: one resend of a
+    message lost on the link (``tracker.resend_after_s``, 5 s) and then the reorder wait for
+    it (``reorder_wait_s``, 10 s)."""

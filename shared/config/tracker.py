@@ -142,12 +142,39 @@ class AssociationConfig(StrictModel):
     """And at least this fraction of the best support any candidate track gives the same
     detection: a floor label that propagation moved onto the rug lying on it touches the
     rug's points only along its edge, the rug's own track all over."""
+    duplicate_iou: float = Field(0.5, ge=0, le=1)
+    """Not in the paper (docs/method.md, T1): a lost track that the second eq. 3 pass did not
+    take, although its footprint projected into the keyframe overlaps a detection at this IoU
+    or more, is retired: another track already holds that surface, and keeping both would
+    hand the object back and forth between them at later keyframes. 0.5 is the usual
+    same-object IoU; 1 never retires this way (only the bounded lost pool evicts)."""
 
     @model_validator(mode="after")
     def _weights_sum(self) -> AssociationConfig:
         if abs(self.w_iou + self.w_feat - 1.0) > 1e-6:
             raise ValueError(f"w_iou + w_feat must be 1 (eq. 3), got {self.w_iou + self.w_feat}")
         return self
+
+
+class FragmentsConfig(StrictModel):
+    """Not in the paper (docs/method.md, T3): a detection no track took joins the track that
+    took another detection when it is a piece of that track's object, so a segmenter that
+    cuts an object in two at one keyframe does not leave a second track to compete for the
+    whole object at the next (IDF1 0.679 to 0.717, switches 0.75 to 0.54 per object per 100
+    frames on ``small`` at default mask noise). All three conditions must hold."""
+
+    cover: float = Field(0.5, ge=0, le=1)
+    """Share of the detection's pixels that must lie in the predicted (propagated) mask of
+    the track: mostly inside it."""
+    sim: float = Field(0.85, ge=-1, le=1)
+    """Cosine the detection's eq. 2 prototype must reach with the prototype of the piece the
+    track took. Above eq. 7's theta_sim of 0.8: classical features put a book lying on a
+    table at 0.80-0.81 to the table, and that book must keep its own track."""
+    support: float = Field(0.5, ge=0, le=1)
+    """Share of the detection's back-projected points that must lie on the track's 3D
+    footprint (within ``association.support_radius_m``): mostly on the surface the track was
+    seen as before, so a neighbour that propagation labelled with the track does not join
+    it."""
 
 
 class TrackerConfig(StrictModel):
@@ -167,6 +194,9 @@ class TrackerConfig(StrictModel):
     """Eq. 1 parameters."""
     association: AssociationConfig = Field(default_factory=AssociationConfig)
     """Eqs. 2-3 parameters."""
+    fragments: FragmentsConfig = Field(default_factory=FragmentsConfig)
+    """When an unmatched detection joins the track that took another piece of its object
+    (not in the paper)."""
     keyframe_timeout_s: float = Field(5.0, gt=0)
     """Masks not back after this long count as lost; the tracker keeps propagating and
     retries at the next keyframe (not in the paper, which has no late masks; docs/method.md,

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.fusion.session import END_GRACE_S, FusionSession
+from services.fusion.session import FusionSession
 from shared.config import TrackGraphConfig
 from shared.graph.store import MapStore
 from shared.messages.frames import EndOfSequence, FrameAck, TrackedFrame
@@ -141,10 +141,10 @@ def test_the_map_finishes_only_once_everything_announced_is_in(clock, make_frame
 
 
 def test_missing_messages_finish_the_map_after_the_grace(clock, make_frame):
-    rig = Rig(clock)
+    rig = Rig(clock, config={"fusion": {"snapshot_interval_s": 10.0, "end_grace_s": 4.0}})
     rig.frame(make_frame, 0)
     rig.send_end(last=5, features=3, published=6)
-    rig.tick(END_GRACE_S - 1)
+    rig.tick(4.0 - 1)
     assert not rig.session.finished.is_set()
     rig.tick(2)
     assert rig.session.finished.is_set()

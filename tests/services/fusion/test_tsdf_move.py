@@ -30,7 +30,7 @@ def _delta(deg: float, t: tuple[float, float, float]) -> np.ndarray:
 
 
 def _mapped(frames: int = 6, **cfg) -> tuple[HypothesisTSDF, PoseBook]:
-    tsdf = HypothesisTSDF(TSDFConfig(**cfg), device="cpu", backend="numba")
+    tsdf = HypothesisTSDF(TSDFConfig(vote_backend="numba", **cfg), device="cpu")
     book = PoseBook()
     tsdf.epoch_motion = book.epoch_motion
     for f in range(frames):
@@ -129,7 +129,7 @@ def test_archived_blocks_move_when_they_are_read():
     assert len(after) == len(before)
     np.testing.assert_allclose(np.sort(after.vertices[:, 2]), np.sort(before.vertices[:, 2] + 0.4), atol=0.016)
     # kept, as placed, through a save and a load; read again it is where the estimates put it
-    again = HypothesisTSDF(TSDFConfig(active_window_m=3.0), device="cpu", backend="numba")
+    again = HypothesisTSDF(TSDFConfig(active_window_m=3.0, vote_backend="numba"), device="cpu")
     again.load_state_dict(tsdf.state_dict())
     again.epoch_motion = book.epoch_motion
     np.testing.assert_allclose(again.extract_archived_mesh().vertices, after.vertices)

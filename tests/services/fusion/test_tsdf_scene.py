@@ -81,7 +81,8 @@ FRAMES = [(T, *render(T)) for T in POSES]
 
 
 def fused(cfg: TSDFConfig | None = None, backend: str = "auto", frames=FRAMES) -> HypothesisTSDF:
-    tsdf = HypothesisTSDF(cfg or TSDFConfig(), device="cpu", backend=backend)
+    cfg = (cfg or TSDFConfig()).model_copy(update={"vote_backend": backend})
+    tsdf = HypothesisTSDF(cfg, device="cpu")
     for T, depth, rgb, ids in frames:
         tsdf.integrate(depth, rgb, K, T, ids, GAMMA)
     return tsdf

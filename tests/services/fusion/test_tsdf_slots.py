@@ -54,7 +54,7 @@ def test_confidence_eq6():
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_slot_fill_replace_and_displaced_weight(backend):
-    tsdf = HypothesisTSDF(TSDFConfig(hypotheses=2), device="cpu", backend=backend)
+    tsdf = HypothesisTSDF(TSDFConfig(hypotheses=2, vote_backend=backend), device="cpu")
 
     st = _frame(tsdf, [10, 10, 10, 10], {10: 1.0})
     assert _slots(tsdf) == {10: 1.0}
@@ -91,7 +91,7 @@ def test_slot_fill_replace_and_displaced_weight(backend):
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_lowest_weight_tie_takes_first_slot(backend):
-    tsdf = HypothesisTSDF(TSDFConfig(hypotheses=2), device="cpu", backend=backend)
+    tsdf = HypothesisTSDF(TSDFConfig(hypotheses=2, vote_backend=backend), device="cpu")
     _frame(tsdf, [1, 1, 2, 2], {1: 1.0, 2: 1.0})
     assert _slots(tsdf) == {1: 0.5, 2: 0.5}
     ids, _ = tsdf.hypotheses_at(VOXEL)
@@ -103,7 +103,7 @@ def test_lowest_weight_tie_takes_first_slot(backend):
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_unknown_track_fails_before_any_change(backend):
-    tsdf = HypothesisTSDF(TSDFConfig(), device="cpu", backend=backend)
+    tsdf = HypothesisTSDF(TSDFConfig(vote_backend=backend), device="cpu")
     with pytest.raises(ValueError, match="99"):
         _frame(tsdf, [5, 99, 5, 5], {5: 1.0})
     assert tsdf.active_blocks == 0

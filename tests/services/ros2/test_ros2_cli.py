@@ -1,4 +1,4 @@
-"""The ROS 2 commands of ``trackgraph`` (services/cli.py): ``ros2 bag``, ``synth --rosbag``,
+"""The ROS 2 commands of ``trackgraph`` (services/cli/): ``ros2 bag``, ``synth --rosbag``,
 ``source --ros2``, ``ros2 play``, the ``deploy/ros2.yaml`` launch plan and the ``ros2`` config
 section as ``config check`` reports it. Every failure exits non-zero with one line,
 ``trackgraph: error: ...``, on stderr (docs/architecture.md, "Command-line contract").

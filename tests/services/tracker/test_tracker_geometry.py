@@ -136,3 +136,14 @@ def test_a_different_object_inside_the_prediction_starts_its_own_track():
     # it looks different and lies off the red track's footprint, so it is not a piece.
     scene = frame(1, 0.0, [(red, RED), (blue, BLUE)])
     assert keyframe(c, scene, masks(red, blue), labels((red | blue, 0))) == [0, 1]
+
+
+def test_fragment_thresholds_come_from_the_config():
+    # The scene above with ``tracker.fragments`` loosened to any cosine and any 3D support:
+    # the blue object, inside the red track's prediction, now joins it as a piece.
+    red, blue = box(12, 12, 20, 16), box(12, 28, 20, 8)
+    cfg = TrackerConfig.model_validate({"keyframe_interval": 1, "device": "cpu", "fragments": {"sim": -1.0, "support": 0.0}})
+    c = TrackerCore(cfg, ClassicalFeatures(short_side=H, patch_size=4))
+    assert keyframe(c, frame(0, 0.0, [(red, RED)]), masks(red)) == [0]
+    scene = frame(1, 0.0, [(red, RED), (blue, BLUE)])
+    assert keyframe(c, scene, masks(red, blue), labels((red | blue, 0))) == [0, 0]

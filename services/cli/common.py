@@ -1,0 +1,43 @@
+"""What several command groups share: the error a command raises for a one-line reason, the
+config a ``--config FILE`` names (or the defaults), and the command-line overrides of shared
+sections."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+class CommandError(Exception):
+    """A command failed for a reason the user can act on; printed as one line."""
+
+
+def _load_or_default(path: Path | None):
+    from shared.config import TrackGraphConfig, load_config
+
+    return load_config(path) if path else TrackGraphConfig()
+
+
+def _corrections_file(path: Path) -> Path:
+    """A corrections file that reads (every line a valid PoseCorrection), or a one-line reason."""
+    from shared.messages.poses import CorrectionsFileError, read_corrections
+
+    try:
+        read_corrections(path)
+    except CorrectionsFileError as e:
+        raise CommandError(str(e)) from None
+    return path.resolve()
+
+
+def _with_ros2(cfg, args: argparse.Namespace):
+    """``cfg`` with the ROS 2 command-line overrides (--connect, --convention, --domain)."""
+    data = cfg.model_dump()
+    if args.connect:
+        data["transport"]["connect"] = args.connect
+    if getattr(args, "convention", None):
+        data["ros2"]["link"]["convention"] = args.convention
+    if getattr(args, "domain", None) is not None:
+        data["ros2"]["link"]["domain_id"] = args.domain
+    from shared.config.base import validate
+
+    return validate(type(cfg), data, "command line")
