@@ -48,3 +48,21 @@ $(DEMO_OUT)/sequence/traj.txt: | $(STAMP)
 
 demo: $(STAMP) $(DEMO_OUT)/sequence/traj.txt
 	$(BIN)/trackgraph demo --out $(DEMO_OUT) $(if $(DEMO_CONFIG),--config $(DEMO_CONFIG))
+
+# Fusion (and what else runs Open3D: the synthetic renderer, the OpenLex3D voxel rule) against
+# Open3D 0.18, the oldest release the `fusion` extra accepts, in a venv of its own; .venv has
+# the newest. Open3D 0.18 has wheels up to CPython 3.11 only. torch (the CPU build) is there for
+# the torch vote and the device tests.
+O3D018_PYTHON ?= python3.11
+O3D018_VENV   ?= .venv-o3d018
+O3D018_TESTS  ?= tests/services/fusion tests/shared/synth tests/shared/eval/test_openlex3d_rules.py
+.PHONY: test-open3d-0.18
+$(O3D018_VENV)/.installed-stamp: pyproject.toml
+	$(O3D018_PYTHON) -m venv $(O3D018_VENV)
+	$(O3D018_VENV)/bin/python -m pip install -q --disable-pip-version-check -e ".[fusion,source]" \
+		open3d-cpu==0.18.0 torch==2.13.0 pytest pytest-timeout hypothesis
+	touch $@
+
+test-open3d-0.18: $(O3D018_VENV)/.installed-stamp
+	$(O3D018_VENV)/bin/python -c "import open3d; assert open3d.__version__.startswith('0.18.'), open3d.__version__"
+	$(O3D018_VENV)/bin/python -m pytest -q -p no:cacheprovider $(O3D018_TESTS)

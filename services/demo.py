@@ -107,7 +107,7 @@ def _git_commit() -> str:
         return "unknown"
 
 
-def run_demo(out: Path, *, preset: str = "demo", seed: int = 0, config: Path | None = None, launch_file: Path | str = LAUNCH) -> dict[str, Any]:
+def run_demo(out: Path, *, preset: str = "demo", seed: int = 0, config: Path | str | None = None, launch_file: Path | str = LAUNCH, sets: list[str] | None = None) -> dict[str, Any]:
     """Everything above; returns the report's figures and writes ``out/report.md``."""
     from services.launch import LaunchError, Supervisor, plan_launch
     from services.query.client import QueryClient
@@ -123,7 +123,7 @@ def run_demo(out: Path, *, preset: str = "demo", seed: int = 0, config: Path | N
     cfg_path, why = choose_config(config)
     log.info("perception: %s", why)
 
-    plan = plan_launch(launch_file, sequence=seq, out=map_dir, log_dir=out / "logs", config=cfg_path)
+    plan = plan_launch(launch_file, sequence=seq, out=map_dir, log_dir=out / "logs", config=cfg_path, sets=sets or [])
     plan.launch = plan.launch.model_copy(update={"exit_when_finished": False})
     sup = Supervisor(plan, status=True)
     runner = threading.Thread(target=sup.run, name="demo:launch", daemon=True)

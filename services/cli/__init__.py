@@ -33,7 +33,7 @@ from services.cli import (
     synth,
     view,
 )
-from services.cli.common import CommandError
+from services.cli.common import CommandError, add_set
 
 __all__ = ["CommandError", "build_parser", "main"]
 
@@ -47,7 +47,22 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for group in _GROUPS:
         group.add_parser(sub)
+    _add_set_where_a_config_is_taken(p)
     return p
+
+
+def _add_set_where_a_config_is_taken(parser: argparse.ArgumentParser) -> None:
+    """``--set KEY=VALUE`` on every command that takes a config (a ``--config`` option, or the
+    config file of ``config show``/``check`` and the launch file of ``launch``), so the one way
+    to override a config is everywhere."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for child in action.choices.values():
+                takes = any("--config" in a.option_strings for a in child._actions)
+                takes |= child.prog.endswith(("config show", "config check", "trackgraph launch"))
+                if takes:
+                    add_set(child)
+                _add_set_where_a_config_is_taken(child)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -19,9 +19,15 @@ def _cmd_bench_run(args: argparse.Namespace) -> int:
         raise CommandError("--sequence needs at least one --config FILE (simulated perception works on synthetic scenes only)")
     if args.rate_seconds is not None and args.rate_seconds <= 0:
         raise CommandError(f"--rate-seconds must be positive, got {args.rate_seconds}")
+    configs = args.config or []
+    if args.set:  # each config with the --set items, resolved beside the bench's outputs
+        from shared.config import load_config, save_resolved
+        from shared.presets import config_path
+
+        configs = [save_resolved(load_config(c, args.set), Path(args.out) / "configs" / "set" / f"{config_path(c).stem}.yaml") for c in configs or ["synthetic"]]
     try:
         res = run_bench(
-            args.out, preset=args.preset, seed=args.seed, sequence=args.sequence, gt=args.gt, configs=args.config or [],
+            args.out, preset=args.preset, seed=args.seed, sequence=args.sequence, gt=args.gt, configs=configs,
             dataset=args.dataset, max_frames=args.max_frames, rate_trials=args.rate_trials, rate_frames=args.rate_frames,
             rate_seconds=args.rate_seconds, random_weights=args.random_weights, resume=args.resume, progress=not args.json,
         )  # fmt: skip
@@ -37,6 +43,8 @@ def _cmd_bench_run(args: argparse.Namespace) -> int:
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Add 'bench' to the top parser's subcommands."""
+    from shared.datasets import DATASETS
+
     be = sub.add_parser("bench", help="the paper's tables for one sequence and one or more configs")
     besub = be.add_subparsers(dest="bench_cmd", required=True)
     br = besub.add_parser("run", help="segmentation, retrieval, efficiency, tracker and gallery ablations: markdown, JSON and plots")
@@ -44,7 +52,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     br.add_argument("--seed", type=int, default=0, help="seed of the synthetic scene")
     br.add_argument("--sequence", type=Path, metavar="SEQ_DIR", help="a recorded sequence instead of a preset")
     br.add_argument("--gt", type=Path, metavar="GT_DIR", help="its OpenLex3D ground truth (with --sequence)")
-    br.add_argument("--dataset", choices=["replica", "scannetpp", "hm3d", "tum", "rosbag"])
+    br.add_argument("--dataset", choices=DATASETS.names())
     br.add_argument("--config", type=Path, action="append", metavar="FILE", help="a system config (repeatable; default deploy/configs/synthetic.yaml)")
     br.add_argument("--out", type=Path, default=Path("bench_out"), metavar="DIR")
     br.add_argument("--max-frames", type=int, metavar="N", help="map only the first N frames")

@@ -12,10 +12,34 @@ class CommandError(Exception):
     """A command failed for a reason the user can act on; printed as one line."""
 
 
-def _load_or_default(path: Path | None):
+def _load_or_default(path: Path | str | None, sets: list[str] | None = None):
+    """The config ``--config`` names (a file or a preset's name), or the defaults, with the
+    ``--set KEY=VALUE`` items on top (shared/config/overrides.py)."""
     from shared.config import TrackGraphConfig, load_config
+    from shared.config.base import validate
+    from shared.config.overrides import apply_sets
 
-    return load_config(path) if path else TrackGraphConfig()
+    if path:
+        return load_config(path, sets or [])
+    if not sets:
+        return TrackGraphConfig()
+    return validate(TrackGraphConfig, apply_sets({}, sets, TrackGraphConfig), f"--set {' '.join(sets)}")
+
+
+def add_set(parser: argparse.ArgumentParser) -> None:
+    """``--set KEY=VALUE`` (repeatable) on a command that takes a config."""
+    parser.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE",
+        help="override one config key, e.g. fusion.tsdf.voxel_size=0.05 (repeatable; checked against the config)",
+    )  # fmt: skip
+
+
+def config_arg_help(text: str = "") -> str:
+    """Help of a ``--config`` option: a preset's name or a file."""
+    from shared.presets import PRESETS
+
+    names = ", ".join(PRESETS.names())
+    return f"a preset ({names}) or a config file" + (f"; {text}" if text else "")
 
 
 def _corrections_file(path: Path) -> Path:

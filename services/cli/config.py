@@ -10,7 +10,7 @@ from pathlib import Path
 def _cmd_config_show(args: argparse.Namespace) -> int:
     from shared.config import dump_yaml, load_config
 
-    cfg = load_config(args.path)
+    cfg = load_config(args.path, args.set)
     if args.json:
         print(json.dumps(cfg.model_dump(mode="json"), indent=2))
     else:
@@ -21,7 +21,7 @@ def _cmd_config_show(args: argparse.Namespace) -> int:
 def _cmd_config_check(args: argparse.Namespace) -> int:
     from shared.config import load_config
 
-    load_config(args.path)
+    load_config(args.path, args.set)
     print(f"ok: {args.path}")
     return 0
 

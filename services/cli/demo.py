@@ -14,7 +14,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from services.launch import LaunchError
 
     try:
-        r = run_demo(args.out, preset=args.preset, seed=args.seed, config=args.config)
+        r = run_demo(args.out, preset=args.preset, seed=args.seed, config=args.config, sets=args.set)
     except LaunchError as exc:
         raise CommandError(f"the demo's launch failed: {exc}") from None
     if args.json:

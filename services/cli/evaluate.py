@@ -111,7 +111,7 @@ def _cmd_eval_queries(args: argparse.Namespace) -> int:
 def _cmd_eval_segmenter(args: argparse.Namespace) -> int:
     from services.keyframe_vl.evaluate import eval_segmenter
 
-    result = eval_segmenter(args.seq, _load_or_default(args.config), every=args.every)
+    result = eval_segmenter(args.seq, _load_or_default(args.config, args.set), every=args.every)
     if not args.json:
         result = {k: v for k, v in result.items() if k != "per_keyframe"}
     _print_metrics(result, args.json, ["mean_best_iou", "objects", "keyframes", "ms_per_keyframe"])

@@ -13,7 +13,7 @@ def _cmd_launch(args: argparse.Namespace) -> int:
     from services.launch import LaunchError, run_launch
 
     try:
-        summary = run_launch(args.file, sequence=args.sequence, out=args.out, log_dir=args.log_dir, status=not args.json)
+        summary = run_launch(args.file, sequence=args.sequence, out=args.out, log_dir=args.log_dir, status=not args.json, sets=args.set)
     except LaunchError as exc:
         raise CommandError(str(exc)) from None
     if args.json:
@@ -27,7 +27,7 @@ def _cmd_launch(args: argparse.Namespace) -> int:
 def _cmd_status(args: argparse.Namespace) -> int:
     from services.monitor import MonitorError, run_status
 
-    cfg = _load_or_default(args.config)
+    cfg = _load_or_default(args.config, args.set)
     transport = cfg.transport
     if args.connect:
         transport = transport.model_copy(update={"connect": args.connect})

@@ -12,7 +12,7 @@ from services.cli.common import _corrections_file, _load_or_default
 def _cmd_map(args: argparse.Namespace) -> int:
     from services.mapping import run_map
 
-    cfg = _load_or_default(args.config)
+    cfg = _load_or_default(args.config, args.set)
     corrections = None if args.corrections is None else _corrections_file(args.corrections)
     summary = run_map(
         args.sequence, cfg, args.out, dataset=args.dataset, save_tracks=args.save_tracks,
@@ -30,11 +30,13 @@ def _cmd_map(args: argparse.Namespace) -> int:
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Add 'map' to the top parser's subcommands."""
+    from shared.datasets import DATASETS
+
     mp = sub.add_parser("map", help="map a recorded sequence in-process (no Zenoh)")
     mp.add_argument("sequence", type=Path, metavar="SEQ_DIR")
     mp.add_argument("--config", type=Path, metavar="FILE", help="system config (default: the paper's settings)")
     mp.add_argument("--out", type=Path, required=True, metavar="MAP_DIR")
-    mp.add_argument("--dataset", choices=["replica", "scannetpp", "hm3d", "tum", "rosbag"])
+    mp.add_argument("--dataset", choices=DATASETS.names())
     mp.add_argument("--save-tracks", action="store_true", help="write per-frame track maps for eval tracking")
     mp.add_argument("--stride", type=int, metavar="N")
     mp.add_argument("--max-frames", type=int, metavar="N")

@@ -12,7 +12,7 @@ from services.cli.common import _load_or_default
 def _cmd_models_check(args: argparse.Namespace) -> int:
     from services.models.check import check_models
 
-    result = check_models(_load_or_default(args.config), load=not args.no_load)
+    result = check_models(_load_or_default(args.config, args.set), load=not args.no_load)
     if args.json:
         print(json.dumps(result))
     else:
@@ -36,7 +36,7 @@ def _cmd_export_onnx(args: argparse.Namespace) -> int:
     from services.models.export import export_all
 
     only = set(args.only) if args.only else None
-    for role, path in export_all(_load_or_default(args.config), args.out, only, fastsam_static=args.fastsam_static).items():
+    for role, path in export_all(_load_or_default(args.config, args.set), args.out, only, fastsam_static=args.fastsam_static).items():
         print(f"{role}: {path}")
     return 0
 

@@ -113,7 +113,7 @@ def _cmd_query(args: argparse.Namespace) -> int:
         req = _query_request(args, text)
         from services.query.client import QueryClient
 
-        cfg = _load_or_default(args.config)
+        cfg = _load_or_default(args.config, args.set)
         transport = cfg.transport
         if args.connect:
             transport = transport.model_copy(update={"connect": args.connect})
@@ -131,7 +131,7 @@ def _cmd_query(args: argparse.Namespace) -> int:
         from services.query.offline import OfflineQueries, map_config
 
         try:
-            reply = OfflineQueries(map_dir, map_config(map_dir, args.config)).ask(req)
+            reply = OfflineQueries(map_dir, map_config(map_dir, args.config, args.set)).ask(req)
         except QueryError as exc:
             raise CommandError(str(exc)) from None
         where = str(map_dir)

@@ -13,7 +13,7 @@ def _cmd_ros2_play(args: argparse.Namespace) -> int:
     from services.ros2.node import play_bag
     from shared.ros2.bagio import BagError
 
-    cfg = _with_ros2(_load_or_default(args.config), args)
+    cfg = _with_ros2(_load_or_default(args.config, args.set), args)
     try:
         stats = play_bag(args.bag, cfg, rate=args.rate, topics=args.topic, wait_subscribers_s=args.wait, progress=not args.json)
     except (BagError, ValueError) as e:

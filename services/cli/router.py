@@ -10,7 +10,7 @@ def _cmd_router(args: argparse.Namespace) -> int:
     from shared.config import TransportConfig, load_config
 
     if args.config:
-        cfg = load_config(args.config).transport.model_copy(update={"mode": "router"})
+        cfg = load_config(args.config, args.set).transport.model_copy(update={"mode": "router"})
     else:
         cfg = TransportConfig(mode="router", connect=[], listen=args.listen or ["tcp/127.0.0.1:7447"])
     if args.listen:

@@ -11,7 +11,7 @@ from services.cli.common import _load_or_default
 def _cmd_serve(args: argparse.Namespace) -> int:
     from services.serve import serve
 
-    cfg = _load_or_default(args.config)
+    cfg = _load_or_default(args.config, args.set)
     if args.connect:
         data = cfg.model_dump()
         data["transport"]["connect"] = args.connect
@@ -26,8 +26,10 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Add 'serve' to the top parser's subcommands."""
+    from shared.registry import servable_services
+
     sv = sub.add_parser("serve", help="run one service as this process, until Ctrl-C")
-    sv.add_argument("service", choices=["keyframe_vl", "tracker", "fusion", "query", "viewer", "ros2"])
+    sv.add_argument("service", choices=servable_services())
     sv.add_argument("--config", type=Path, metavar="FILE")
     sv.add_argument("--connect", action="append", metavar="ENDPOINT", help="router endpoint(s)")
     sv.add_argument("--out", type=Path, metavar="PATH", help="fusion: the map folder (snapshots, final map); viewer: the .rrd recording")

@@ -11,7 +11,7 @@ from services.cli.common import CommandError, _corrections_file, _load_or_defaul
 
 
 def _cmd_source(args: argparse.Namespace) -> int:
-    cfg = _load_or_default(args.config)
+    cfg = _load_or_default(args.config, args.set)
     if args.ros2:
         return _source_ros2(args, cfg)
     if args.sequence is None:
@@ -58,6 +58,8 @@ def _source_ros2(args: argparse.Namespace, cfg) -> int:
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Add 'source' to the top parser's subcommands."""
+    from shared.datasets import DATASETS
+
     so = sub.add_parser("source", help="replay a sequence as frames over Zenoh, or with --ros2 take a live robot's ROS 2 topics")
     so.add_argument("sequence", type=Path, metavar="SEQ_DIR", nargs="?")
     so.add_argument("--ros2", action="store_true", help="frames from the robot's ROS 2 camera and pose topics (config section ros2) until Ctrl-C")
@@ -65,7 +67,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     so.add_argument("--domain", type=int, metavar="ID", help="--ros2: ROS_DOMAIN_ID (default: the config's)")
     so.add_argument("--seconds", type=float, metavar="S", help="--ros2: stop after S seconds")
     so.add_argument("--config", type=Path, metavar="FILE")
-    so.add_argument("--dataset", choices=["replica", "scannetpp", "hm3d", "tum", "rosbag"])
+    so.add_argument("--dataset", choices=DATASETS.names())
     so.add_argument("--mode", choices=["lossless", "live"])
     so.add_argument("--rate", type=float, metavar="HZ", help="live-mode rate")
     so.add_argument("--stride", type=int, metavar="N")

@@ -22,7 +22,7 @@ def _cmd_view(args: argparse.Namespace) -> int:
         from shared.messages.rpc import QueryRequest
 
         try:
-            offline = OfflineQueries(map_dir, map_config(map_dir, args.config))
+            offline = OfflineQueries(map_dir, map_config(map_dir, args.config, args.set))
         except QueryError as exc:
             raise CommandError(str(exc)) from None
         for text in args.query:

@@ -30,13 +30,17 @@ def load_index(map_dir: Path, min_view_share: float = 0.0) -> QueryIndex:
     return QueryIndex.build(snap.graph_seq, snap.segments, snap.rooms, min_view_share=min_view_share)
 
 
-def map_config(map_dir: Path, override: Path | None = None) -> TrackGraphConfig:
+def map_config(map_dir: Path, override: Path | str | None = None, sets: list[str] | None = None) -> TrackGraphConfig:
+    """The config a saved map was made with (``MAP_DIR/config.yaml``), or ``override`` (a file
+    or a preset's name), with ``sets`` (``KEY=VALUE``) on top."""
     from shared.config import load_config
 
-    path = override or Path(map_dir) / "config.yaml"
+    if override is not None:
+        return load_config(override, sets or [])
+    path = Path(map_dir) / "config.yaml"
     if not path.is_file():
         raise QueryError(f"{path}: no config to build the query encoder from; pass --config FILE")
-    return load_config(path)
+    return load_config(path, sets or [])
 
 
 class OfflineQueries:

@@ -75,8 +75,9 @@ flags, room and vertex count, the float64 boxes (the attributes hold float32 box
 when the room had none: then the attribute box comes from its places' outlines), area, an
 agent's frame index. Mesh vertices without a segment carry the
 label 2**32 - 1. The graph metadata records the format version and this layout. Outline
-hulls and the agent-place lookup use scipy (``ConvexHull``, ``cKDTree``), installed with
-spark-dsg by the ``fusion`` and ``gpu`` extras.
+hulls and the agent-place lookup use scipy (``ConvexHull``, ``cKDTree``). spark-dsg comes with
+the ``hydra`` extra (in ``all``); without it fusion logs a warning and saves maps without
+``graph.sparkdsg`` (its wheels need an sdist-only ``zmq``, so a robot profile leaves it out).
 
 :func:`from_dsg` rebuilds the :class:`GraphSnapshot` (for float32 galleries exactly), and
 still reads files of format 1 (no outlines, agents, room boxes or segment colours).

@@ -231,7 +231,7 @@ def test_cpu_image():
     assert f"--index-url {CPU_INDEX} {TORCH_PAIR}" in " ".join(runs.split())
     for pkg in ("libusb-1.0-0", "libgl1"):
         assert re.search(rf"apt-get install[^&]*\b{re.escape(pkg)}\b", runs), pkg
-    assert 'pip install ".[tracker,fusion,query,source]"' in runs
+    assert 'pip install ".[tracker,fusion,hydra,query,source]"' in runs
 
 
 def test_cuda_image():
