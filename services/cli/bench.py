@@ -44,11 +44,12 @@ def _cmd_bench_run(args: argparse.Namespace) -> int:
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Add 'bench' to the top parser's subcommands."""
     from shared.datasets import DATASETS
+    from shared.synth.config import PRESETS as SCENES  # the synthetic scenes, registered there
 
     be = sub.add_parser("bench", help="the paper's tables for one sequence and one or more configs")
     besub = be.add_subparsers(dest="bench_cmd", required=True)
     br = besub.add_parser("run", help="segmentation, retrieval, efficiency, tracker and gallery ablations: markdown, JSON and plots")
-    br.add_argument("--preset", choices=["small", "demo", "revisit"], help="a synthetic scene (generated into OUT)")
+    br.add_argument("--preset", choices=list(SCENES), help="a synthetic scene (generated into OUT)")
     br.add_argument("--seed", type=int, default=0, help="seed of the synthetic scene")
     br.add_argument("--sequence", type=Path, metavar="SEQ_DIR", help="a recorded sequence instead of a preset")
     br.add_argument("--gt", type=Path, metavar="GT_DIR", help="its OpenLex3D ground truth (with --sequence)")

@@ -34,9 +34,11 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Add 'demo' to the top parser's subcommands."""
+    from shared.synth.config import PRESETS as SCENES  # the synthetic scenes, registered there
+
     dm = sub.add_parser("demo", help="the synthetic demo scene through the whole distributed system, with example queries and a report")
     dm.add_argument("--out", type=Path, default=Path("demo_out"), metavar="DIR")
-    dm.add_argument("--preset", choices=["small", "demo", "revisit"], default="demo")
+    dm.add_argument("--preset", choices=list(SCENES), default="demo")
     dm.add_argument("--seed", type=int, default=0)
     dm.add_argument("--config", type=Path, metavar="FILE", help="default: the paper's models if their weights are present, else simulated perception")
     dm.add_argument("--json", action="store_true", help="print the report's figures as JSON")

@@ -41,8 +41,10 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Add 'synth' to the top parser's subcommands."""
+    from shared.synth.config import PRESETS as SCENES  # the synthetic scenes, registered there
+
     sy = sub.add_parser("synth", help="generate a synthetic RGB-D sequence with ground truth")
-    sy.add_argument("--preset", choices=["small", "demo", "revisit"], default="small")
+    sy.add_argument("--preset", choices=list(SCENES), default="small")
     sy.add_argument("--seed", type=int, default=0)
     sy.add_argument("--out", type=Path, required=True, metavar="DIR")
     sy.add_argument("--overwrite", action="store_true", help="replace a non-empty DIR")
