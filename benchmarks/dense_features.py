@@ -23,7 +23,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from shared.config.tracker import PropagationConfig, dense_features_config  # noqa: E402
+from shared.config.tracker import PropagationConfig  # noqa: E402
+from shared.perception.features.config import dense_features_config  # noqa: E402
 
 OUT = Path(__file__).resolve().parent / "out"
 
@@ -37,8 +38,8 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from services.models.random_weights import save_random_dinov3_timm
-    from services.tracker.features import make_dense_features
     from services.tracker.propagation import benchmark_propagation
+    from shared.perception.features import make_dense_features
 
     repeats = 2 if args.quick else 10
     rows = []

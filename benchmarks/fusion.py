@@ -17,7 +17,7 @@ one process, alternating which goes first:
 
 * **plain**: Open3D's VoxelBlockGrid (tsdf, weight, color) with the same input conversions
   (depth range filter, float colour), ``compute_unique_block_coordinates`` + ``integrate``;
-* **hypotheses**: :class:`services.fusion.tsdf.HypothesisTSDF` (K = 4 track slots per
+* **hypotheses**: :class:`services.fusion.volume.tsdf.HypothesisTSDF` (K = 4 track slots per
   voxel), ``update_window`` + ``integrate`` with per-track confidences from eq. 6 (a keyframe
   every 24 frames, propagated masks in between).
 
@@ -27,7 +27,7 @@ blocks, the volumes' memory (Open3D preallocates: capacity x bytes per block) an
 process's peak RSS, and an extrapolation of the volume memory to a Replica room. The first
 frame of each volume is untimed (numba compilation or cache load, first allocations). The
 process's peak RSS includes the decoded frames and libraries; the volume memory is the part
-that grows with the map. Then fusion's write-ahead journal (``services.fusion.journal``):
+that grows with the map. Then fusion's write-ahead journal (``services.fusion.durability.journal``):
 ms and bytes per tracked-frame record on the first 60 frames, at their resolution and scaled
 to Replica's 1200x680. Results go to ``benchmarks/out/fusion.json`` and tables on stdout.
 """
@@ -54,8 +54,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from services.fusion.hypotheses import confidence  # noqa: E402
-from services.fusion.tsdf import HypothesisTSDF  # noqa: E402
+from services.fusion.volume.hypotheses import confidence  # noqa: E402
+from services.fusion.volume.tsdf import HypothesisTSDF  # noqa: E402
 from shared.config.fusion import TSDFConfig  # noqa: E402
 from shared.geometry import Intrinsics, invert  # noqa: E402
 from shared.logs import setup_logging  # noqa: E402
@@ -319,12 +319,12 @@ def run_voxel(voxel: float, frames: Any, backend: str) -> dict:
 
 
 def run_journal(frames: Any, limit: int = 60) -> dict:
-    """fusion's write-ahead journal on these frames (services.fusion.journal, the default
+    """fusion's write-ahead journal on these frames (services.fusion.durability.journal, the default
     config: zstd level 1, fsync at most once a second): ms and bytes per TrackedFrame record,
     at the frames' resolution and scaled to Replica's 1200x680 (nearest neighbour)."""
     import tempfile
 
-    from services.fusion.journal import Journal
+    from services.fusion.durability.journal import Journal
     from shared.config.fusion import JournalConfig
     from shared.messages.frames import Frame, TrackedFrame
 

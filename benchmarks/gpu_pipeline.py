@@ -174,8 +174,8 @@ def install_stage_timers(times: StageTimes) -> None:
     """Wrap the pipeline's stage calls in timers (this process only: the child that maps)."""
     import services.tracker.core as tracker_core
     from services.fusion.core import FusionCore
-    from services.fusion.segments import SegmentLayer
-    from services.fusion.tsdf import HypothesisTSDF
+    from services.fusion.layers.segments import SegmentLayer
+    from services.fusion.volume.tsdf import HypothesisTSDF
     from services.keyframe_vl.core import KeyframeVLCore
 
     init = tracker_core.TrackerCore.__init__

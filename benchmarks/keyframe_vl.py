@@ -34,15 +34,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from shared.codec import encode  # noqa: E402
 from shared.config import CodecConfig  # noqa: E402
-from shared.config.keyframe_vl import (  # noqa: E402
-    SegmenterBackend,
-    VLEncoderBackend,
-    segmenter_config,
-    vl_config,
-)
 from shared.datasets.ground_truth import StaticGroundTruth  # noqa: E402
 from shared.messages import KeyframeMasks, MaskFeatures  # noqa: E402
 from shared.perception import KeyframeImage, Masks  # noqa: E402
+from shared.perception.encoders.config import VLEncoderBackend, vl_config  # noqa: E402
+from shared.perception.segmenters.config import SegmenterBackend, segmenter_config  # noqa: E402
 
 log = logging.getLogger("bench.keyframe_vl")
 OUT = Path(__file__).resolve().parent / "out"
@@ -93,9 +89,9 @@ def _sync(device: str) -> None:
 
 
 def run_case(name: str, seg_cfg: SegmenterBackend, vl_cfg: VLEncoderBackend, imgs: list[Keyframe], device: str, fp16: bool, warmup: int) -> dict:
-    from services.keyframe_vl.encoders import make_vl_encoder
-    from services.keyframe_vl.segmenters import make_segmenter
-    from services.keyframe_vl.segmenters.simulated import SimulatedSegmenter
+    from shared.perception.encoders import make_vl_encoder
+    from shared.perception.segmenters import make_segmenter
+    from shared.perception.segmenters.simulated import SimulatedSegmenter
 
     truth = ground_truth(imgs)
     seg = SimulatedSegmenter(seg_cfg, truth) if seg_cfg.backend == "simulated" else make_segmenter(seg_cfg, device=device, fp16=fp16)

@@ -6,7 +6,7 @@ Two parts, both with colour, depth, CameraInfo and TF per frame as a RealSense d
 SLAM back end send them:
 
 - core: decode and synchronisation time per frame in the
-  :class:`~shared.ros2.live.FrameAssembler`, from CDR bytes to a TrackGraph ``Frame``, for raw
+  :class:`~services.ros2.live.FrameAssembler`, from CDR bytes to a TrackGraph ``Frame``, for raw
   (rgb8 + 16UC1) and compressed (JPEG + compressedDepth PNG) images;
 - live: the whole source node over Zenoh on loopback. A publisher plays a robot at 30 Hz in
   the rmw_zenoh convention for ``--seconds``; what the node published, dropped (latest
@@ -109,7 +109,7 @@ def _input_config(compressed: bool) -> Ros2InputConfig:
 
 def bench_core(frames: int, compressed: bool) -> dict:
     """Decode + sync time per frame in the assembler (one thread, no network)."""
-    from shared.ros2.live import FrameAssembler
+    from services.ros2.live import FrameAssembler
 
     rng = np.random.default_rng(0)
     rgb, depth = _scene(rng)

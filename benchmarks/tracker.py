@@ -61,15 +61,15 @@ if str(ROOT) not in sys.path:
 import torch  # noqa: E402
 
 from services.keyframe_vl.core import keyframe_image  # noqa: E402
-from services.keyframe_vl.segmenters import make_segmenter  # noqa: E402
 from services.models.random_weights import save_random_fastsam  # noqa: E402
 from services.tracker.core import TrackerCore  # noqa: E402
-from services.tracker.features.dinov3 import Dinov3Features, PatchTokens  # noqa: E402
 from services.tracker.propagation import propagate_labels, upsample_labels  # noqa: E402
-from shared.config.keyframe_vl import segmenter_config  # noqa: E402
 from shared.config.tracker import PropagationConfig, TrackerConfig  # noqa: E402
 from shared.logs import setup_logging  # noqa: E402
 from shared.perception import KeyframeImage, Segmenter  # noqa: E402
+from shared.perception.features.dinov3 import Dinov3Features, PatchTokens  # noqa: E402
+from shared.perception.segmenters import make_segmenter  # noqa: E402
+from shared.perception.segmenters.config import segmenter_config  # noqa: E402
 
 log = logging.getLogger("bench.tracker")
 

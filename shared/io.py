@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 from shared.procfs import status_field
@@ -19,20 +20,23 @@ def _umask() -> int:
     return mask
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> Path:
-    """Write to a temporary file in the same folder, fsync, then rename over ``path``.
+def atomic_replace(path: Path, write: Callable[[Path], object], suffix: str = ".tmp") -> Path:
+    """Have ``write`` fill a temporary file in the same folder, fsync it, then rename it over
+    ``path``; on any failure the temporary file is removed and ``path`` left as it was.
 
-    The file gets the permissions a plain ``open()`` would give it (0666 less the umask),
-    not the 0600 of the temporary file, so maps and reports can be shared and served.
+    ``suffix`` ends the temporary name, for writers that choose a format by extension. The
+    file gets the permissions a plain ``open()`` would give it (0666 less the umask), not the
+    0600 of the temporary file, so maps and reports can be shared and served.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
+    tmp = Path(name)
     try:
         os.fchmod(fd, 0o666 & ~_umask())
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
+        os.close(fd)
+        write(tmp)
+        with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:
@@ -42,6 +46,11 @@ def atomic_write_bytes(path: Path, data: bytes) -> Path:
             pass
         raise
     return path
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically (:func:`atomic_replace`)."""
+    return atomic_replace(path, lambda tmp: tmp.write_bytes(data))
 
 
 def atomic_write_text(path: Path, text: str) -> Path:

@@ -175,7 +175,36 @@ class TypedPublisher(Generic[M]):
         self._pub.undeclare()
 
 
-class TypedSubscriber(Generic[M]):
+class _Served:
+    """What a subscriber and a queryable share: a queue filled by the Zenoh callback under
+    ``_cv`` and emptied by worker threads, and the declared Zenoh entity behind it."""
+
+    _queue: collections.deque
+    _cv: threading.Condition
+    _closed: bool
+    _declared: zenoh.Subscriber | zenoh.Queryable
+    _workers: list[threading.Thread]
+
+    def pending(self) -> int:
+        """Messages (or requests) queued and not yet being handled."""
+        with self._cv:
+            return len(self._queue)
+
+    def close(self) -> None:
+        """Stop receiving; calling it again does nothing."""
+        with self._cv:
+            if self._closed:
+                return
+            self._closed = True
+            self._cv.notify_all()
+        self._declared.undeclare()
+        for t in self._workers:
+            # A handler may close its own subscriber; a thread cannot join itself.
+            if t is not threading.current_thread():
+                t.join(timeout=5)
+
+
+class TypedSubscriber(_Served, Generic[M]):
     """Receives one message type from one key through a bounded queue.
 
     ``policy="fifo"`` keeps messages in order and, when full, drops the new one, counts it
@@ -209,28 +238,30 @@ class TypedSubscriber(Generic[M]):
         self._on_drop, self._on_reject = on_drop, on_reject
         self.codec = codec or CodecConfig()
         self.stats = LinkStats()
-        self._buf: collections.deque[bytes] = collections.deque()
+        self._queue: collections.deque[bytes] = collections.deque()
         self._cv = threading.Condition()
         self._closed = False
-        self._sub = session.declare_subscriber(key, self._on_sample)
-        self._worker: threading.Thread | None = None
+        self._declared = session.declare_subscriber(key, self._on_sample)
+        self._workers = []
         if callback is not None:
-            self._worker = threading.Thread(target=self._run, args=(callback,), name=name or f"sub:{key}", daemon=True)
-            self._worker.start()
+            self._workers.append(
+                threading.Thread(target=self._run, args=(callback,), name=name or f"sub:{key}", daemon=True)
+            )
+            self._workers[0].start()
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         data = sample.payload.to_bytes()
         with self._cv:
             if self._closed:
                 return
-            dropped = len(self._buf) >= self.capacity
+            dropped = len(self._queue) >= self.capacity
             if dropped:
                 self.stats.add("dropped")
                 if self.policy == "latest":
-                    self._buf.popleft()
-                    self._buf.append(data)
+                    self._queue.popleft()
+                    self._queue.append(data)
             else:
-                self._buf.append(data)
+                self._queue.append(data)
             self._cv.notify_all()
         if dropped:
             if self.policy == "fifo":
@@ -243,14 +274,14 @@ class TypedSubscriber(Generic[M]):
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
             with self._cv:
-                while not self._buf and not self._closed:
+                while not self._queue and not self._closed:
                     remaining = None if deadline is None else deadline - time.monotonic()
                     if remaining is not None and remaining <= 0:
                         return None
                     self._cv.wait(remaining)
-                if not self._buf:
+                if not self._queue:
                     return None
-                data = self._buf.popleft()
+                data = self._queue.popleft()
                 self._cv.notify_all()
             try:
                 env = decode(data, self.msg_type, self.codec)
@@ -275,22 +306,8 @@ class TypedSubscriber(Generic[M]):
                 self.stats.add("handler_errors", error=repr(exc))
                 log.exception("%s: handler failed on seq %d", self.key, env.seq)
 
-    def pending(self) -> int:
-        with self._cv:
-            return len(self._buf)
 
-    def close(self) -> None:
-        with self._cv:
-            if self._closed:
-                return
-            self._closed = True
-            self._cv.notify_all()
-        self._sub.undeclare()
-        if self._worker is not None and self._worker is not threading.current_thread():
-            self._worker.join(timeout=5)
-
-
-class TypedQueryable(Generic[M, R]):
+class TypedQueryable(_Served, Generic[M, R]):
     """Answers requests of one type on one key with ``handler``, on ``workers`` threads.
 
     A malformed request is counted and answered with an error reply; a handler exception
@@ -330,11 +347,11 @@ class TypedQueryable(Generic[M, R]):
         self._idle = workers
         """Workers not answering a query now: a query for one of them never counts as waiting."""
         self._seq = 0
-        self._q = session.declare_queryable(key, self._on_query)
-        self._threads = [
+        self._declared = session.declare_queryable(key, self._on_query)
+        self._workers = [
             threading.Thread(target=self._run, name=f"qbl:{key}:{i}", daemon=True) for i in range(workers)
         ]
-        for t in self._threads:
+        for t in self._workers:
             t.start()
 
     def _on_query(self, query: zenoh.Query) -> None:
@@ -403,21 +420,6 @@ class TypedQueryable(Generic[M, R]):
         query.reply(self.key, out)
         self.stats.add("published")
 
-    def pending(self) -> int:
-        """Requests queued and not yet being answered."""
-        with self._cv:
-            return len(self._queue)
-
-    def close(self) -> None:
-        """Stop answering; calling it again does nothing."""
-        with self._cv:
-            if self._closed:
-                return
-            self._closed = True
-            self._cv.notify_all()
-        self._q.undeclare()
-        for t in self._threads:
-            t.join(timeout=5)
 
 
 def request(

@@ -20,7 +20,7 @@ PYPROJECT = Path(__file__).resolve().parents[1] / "pyproject.toml"
 
 API_FLOORS = {
     # Each checked by reading the wheel of that version (pip download --no-deps), 2026-12-04.
-    "transformers": ("4.56", "DINOv3ViTModel (services/tracker/features/dinov3.py)"),
+    "transformers": ("4.56", "DINOv3ViTModel (shared/perception/features/dinov3.py)"),
     "timm": ("1.0.20", "vit_small_plus_patch16_dinov3[_qkvb] and eva.checkpoint_filter_fn"),
     "open-clip-torch": ("3.0", "model.visual.preprocess_cfg, get_tokenizer(context_length=)"),
     # 8.3.0 names FastSAM's half precision `half`, later ones `quantize`: predict gets neither

@@ -1,6 +1,6 @@
 """What several command groups share: the error a command raises for a one-line reason, the
-config a ``--config FILE`` names (or the defaults), and the command-line overrides of shared
-sections."""
+config a ``--config FILE`` names (or the defaults), the command-line overrides of shared
+sections, and a command of several actions."""
 
 from __future__ import annotations
 
@@ -24,6 +24,11 @@ def _load_or_default(path: Path | str | None, sets: list[str] | None = None):
     if not sets:
         return TrackGraphConfig()
     return validate(TrackGraphConfig, apply_sets({}, sets, TrackGraphConfig), f"--set {' '.join(sets)}")
+
+
+def add_actions(sub: argparse._SubParsersAction, name: str, help: str, metavar: str = "ACTION") -> argparse._SubParsersAction:
+    """Add ``trackgraph NAME ACTION``, a command of several actions; add them to what it returns."""
+    return sub.add_parser(name, help=help).add_subparsers(dest=f"{name}_command", required=True, metavar=metavar)
 
 
 def add_set(parser: argparse.ArgumentParser) -> None:

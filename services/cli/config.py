@@ -6,6 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
+from services.cli.common import add_actions
+
 
 def _cmd_config_show(args: argparse.Namespace) -> int:
     from shared.config import dump_yaml, load_config
@@ -28,8 +30,7 @@ def _cmd_config_check(args: argparse.Namespace) -> int:
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Add 'config' to the top parser's subcommands."""
-    c = sub.add_parser("config", help="inspect and validate config files")
-    csub = c.add_subparsers(dest="config_command", required=True, metavar="ACTION")
+    csub = add_actions(sub, "config", "inspect and validate config files")
     show = csub.add_parser("show", help="print the resolved config, defaults included")
     show.add_argument("path", type=Path)
     show.add_argument("--json", action="store_true", help="JSON instead of YAML")

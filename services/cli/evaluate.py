@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from services.cli.common import CommandError, _load_or_default
+from services.cli.common import CommandError, _load_or_default, add_actions
 
 
 def _print_metrics(result: dict, as_json: bool, keys: list[str]) -> None:
@@ -118,10 +118,17 @@ def _cmd_eval_segmenter(args: argparse.Namespace) -> int:
     return 0
 
 
+def _against_truth(evsub: argparse._SubParsersAction, name: str, help: str, gt: str = "GT_DIR") -> argparse.ArgumentParser:
+    """An ``eval`` action that scores a map (``--pred MAP_DIR``) against ground truth (``--gt``)."""
+    p = evsub.add_parser(name, help=help)
+    p.add_argument("--pred", type=Path, required=True, metavar="MAP_DIR")
+    p.add_argument("--gt", type=Path, required=True, metavar=gt)
+    return p
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Add 'eval' to the top parser's subcommands."""
-    ev = sub.add_parser("eval", help="evaluate maps, tracks and masks against ground truth")
-    evsub = ev.add_subparsers(dest="eval_command", required=True, metavar="WHAT")
+    evsub = add_actions(sub, "eval", "evaluate maps, tracks and masks against ground truth", metavar="WHAT")
     ol = evsub.add_parser("openlex3d", help="OpenLex3D top-N categories and retrieval AP")
     ol.add_argument("--pred", type=Path, metavar="MAP_DIR", help="map in the OpenLex3D prediction format")
     ol.add_argument("--gt", type=Path, required=True, metavar="GT_DIR")
@@ -138,26 +145,18 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )  # fmt: skip
     ol.add_argument("--json", action="store_true")
     ol.set_defaults(func=_cmd_eval_openlex3d)
-    ins = evsub.add_parser("instances", help="class-agnostic 3D instance AP and duplicates")
-    ins.add_argument("--pred", type=Path, required=True, metavar="MAP_DIR")
-    ins.add_argument("--gt", type=Path, required=True, metavar="GT_DIR")
+    ins = _against_truth(evsub, "instances", "class-agnostic 3D instance AP and duplicates")
     ins.add_argument("--json", action="store_true")
     ins.set_defaults(func=_cmd_eval_instances)
-    rm = evsub.add_parser("rooms", help="room segmentation (needs MAP_DIR/rooms.npz): precision, recall, F1 and IoU per room")
-    rm.add_argument("--pred", type=Path, required=True, metavar="MAP_DIR")
-    rm.add_argument("--gt", type=Path, required=True, metavar="GT_DIR")
+    rm = _against_truth(evsub, "rooms", "room segmentation (needs MAP_DIR/rooms.npz): precision, recall, F1 and IoU per room")
     rm.add_argument("--iou", type=float, default=0.5, metavar="T", help="IoU at which a predicted room matches a ground-truth room")
     rm.add_argument("--json", action="store_true", help='print {"precision", "recall", "f1", "mean_iou", "type_accuracy", ..., "per_room"}')
     rm.set_defaults(func=_cmd_eval_rooms)
-    tr = evsub.add_parser("tracking", help="2D source-track quality (needs map --save-tracks)")
-    tr.add_argument("--pred", type=Path, required=True, metavar="MAP_DIR")
-    tr.add_argument("--gt", type=Path, required=True, metavar="SEQ_DIR")
+    tr = _against_truth(evsub, "tracking", "2D source-track quality (needs map --save-tracks)", gt="SEQ_DIR")
     tr.add_argument("--json", action="store_true")
     tr.set_defaults(func=_cmd_eval_tracking)
 
-    qe = evsub.add_parser("queries", help="top-1 hits of the query service's answers (eq. 10) for the ground truth's synonym queries")
-    qe.add_argument("--pred", type=Path, required=True, metavar="MAP_DIR")
-    qe.add_argument("--gt", type=Path, required=True, metavar="GT_DIR")
+    qe = _against_truth(evsub, "queries", "top-1 hits of the query service's answers (eq. 10) for the ground truth's synonym queries")
     qe.add_argument("--min-size", type=float, default=0.2, metavar="M", help="only queries for objects larger than this (m)")
     qe.add_argument("--gallery", choices=["max", "mean"], help="override the map config's gallery scoring")
     qe.add_argument("--json", action="store_true", help='print {"top1_hit_rate", "n_hits", "n_queries", ..., "per_query"}')

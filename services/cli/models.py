@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from services.cli.common import _load_or_default
+from services.cli.common import _load_or_default, add_actions
 
 
 def _cmd_models_check(args: argparse.Namespace) -> int:
@@ -43,8 +43,7 @@ def _cmd_export_onnx(args: argparse.Namespace) -> int:
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Add 'models', 'export-onnx' to the top parser's subcommands."""
-    mo = sub.add_parser("models", help="weight files a config needs")
-    mosub = mo.add_subparsers(dest="models_command", required=True, metavar="ACTION")
+    mosub = add_actions(sub, "models", "weight files a config needs")
     mc = mosub.add_parser("check", help="which weight files the config needs, whether present and loadable, where to get them")
     mc.add_argument("--config", type=Path, metavar="FILE")
     mc.add_argument("--no-load", action="store_true", help="only check that the files exist")

@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from services.cli.common import CommandError, _load_or_default, _with_ros2
+from services.cli.common import CommandError, _load_or_default, _with_ros2, add_actions
 
 
 def _cmd_ros2_play(args: argparse.Namespace) -> int:
@@ -42,8 +42,7 @@ def _cmd_ros2_bag(args: argparse.Namespace) -> int:
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Add 'ros2' to the top parser's subcommands."""
-    r2 = sub.add_parser("ros2", help="ROS 2 bags over Zenoh: play one as a robot would send it, or write a sequence as one")
-    r2sub = r2.add_subparsers(dest="ros2_command", required=True, metavar="ACTION")
+    r2sub = add_actions(sub, "ros2", "ROS 2 bags over Zenoh: play one as a robot would send it, or write a sequence as one")
     pl = r2sub.add_parser("play", help="publish a ROS 2 bag's topics over Zenoh at the recorded pace (rmw_zenoh or bridge convention)")
     pl.add_argument("bag", type=Path, metavar="BAG")
     pl.add_argument("--config", type=Path, metavar="FILE", help="transport and the ros2.link section (default: rmw_zenoh, domain 0)")

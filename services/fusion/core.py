@@ -15,21 +15,21 @@ from typing import Annotated, Any
 
 import numpy as np
 
-from services.fusion.hypotheses import confidence
-from services.fusion.move import warm_up
-from services.fusion.observations import ObservationLog
-from services.fusion.poses import CorrectionError, PoseBook
-from services.fusion.roomnames import (
+from services.fusion.corrections.observations import ObservationLog
+from services.fusion.corrections.poses import CorrectionError, PoseBook
+from services.fusion.layers.roomnames import (
     VIEW_SAMPLE_STRIDE,
     RoomVocabulary,
     describe_rooms,
     view_shares,
 )
-from services.fusion.rooms import Hierarchy, HierarchyBuilder
-from services.fusion.segments import SegmentLayer
-from services.fusion.surface import SurfaceSample
-from services.fusion.tsdf import HypothesisTSDF
+from services.fusion.layers.rooms import Hierarchy, HierarchyBuilder
+from services.fusion.layers.segments import SegmentLayer
+from services.fusion.layers.surface import SurfaceSample
 from services.fusion.types import HypothesisMesh, TrackState
+from services.fusion.volume.hypotheses import confidence
+from services.fusion.volume.move import warm_up
+from services.fusion.volume.tsdf import HypothesisTSDF
 from shared.config.fusion import FusionConfig
 from shared.geometry import backproject, pose_from_row, pose_row
 from shared.graph.roomgrid import RoomGrid
@@ -114,7 +114,7 @@ class FusionCore:
         """The room labels' text embeddings; set by the session once ``vl/embed`` answers."""
         self.surface = SurfaceSample(cfg.graph.surface_cell_m)
         self.book = PoseBook()
-        """Raw and corrected pose of every fused frame (:mod:`services.fusion.poses`)."""
+        """Raw and corrected pose of every fused frame (:mod:`services.fusion.corrections.poses`)."""
         self.tsdf.epoch_motion = self.book.epoch_motion
         warm_up()  # the voxel-moving kernels, so a first correction is not slower than the next
         self._moved: set[int] = set()
@@ -325,12 +325,12 @@ class FusionCore:
         """Move the map to where correction ``c`` puts the frames it was fused from.
 
         The estimates of every fused frame are recomputed from the raw poses and ``c`` alone
-        (:class:`~services.fusion.poses.PoseBook`); each piece of the map moves rigidly with
+        (:class:`~services.fusion.corrections.poses.PoseBook`); each piece of the map moves rigidly with
         the frame it was last fused from: TSDF voxels (``HypothesisTSDF.move``), segment
         positions, the whole-map surface sample, keyframe views, the trajectory. Then one
         graph update rebuilds the mesh, segments (re-identification on the corrected
         geometry), places and rooms, and its delta reports every segment that moved, under
-        its own id. Raises :class:`~services.fusion.poses.CorrectionError`, with nothing
+        its own id. Raises :class:`~services.fusion.corrections.poses.CorrectionError`, with nothing
         changed, for a correction that is older than the newest applied, names frames the map
         has not fused, or none it has. The same correction again moves nothing."""
         t0 = time.perf_counter()

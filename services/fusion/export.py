@@ -41,7 +41,7 @@ def run_summary(cfg: TrackGraphConfig, fusion, snapshot, *, frames: int, seconds
         "places": len(snapshot.places),
         "rooms": len(snapshot.rooms),
         "sequence": None if sequence is None else str(sequence),
-        "corrections": fusion.corrections.as_dict() if hasattr(fusion, "corrections") else None,
+        "corrections": fusion.corrections.as_dict(),
         "backends": {
             "tracker": cfg.tracker.mode,
             "dense_features": cfg.tracker.features.backend,
@@ -59,6 +59,18 @@ def run_summary(cfg: TrackGraphConfig, fusion, snapshot, *, frames: int, seconds
         "voxel_size": cfg.fusion.tsdf.voxel_size,
         "machine": {"platform": platform.platform(), "python": platform.python_version()},
     }
+
+
+def service_summary(
+    cfg: TrackGraphConfig, fusion, snapshot, *, frames: int, first_at: float | None, last_at: float | None, now: float, delivery: dict[str, Any],
+) -> dict[str, Any]:  # fmt: skip
+    """The fusion service's ``run.json``: :func:`run_summary`'s keys over the frames it fused
+    (``first_at`` to ``now``), then ``service``, ``fused_seconds`` and the ``delivery`` figures."""
+    summary = run_summary(cfg, fusion, snapshot, frames=frames, seconds=now - (first_at or now), sequence=None)
+    # From the first frame fused to the last, without the final save: what a live source's
+    # rate is compared with (``trackgraph bench run``).
+    summary.update(service="fusion", fused_seconds=round((last_at or 0.0) - (first_at or 0.0), 3), **delivery)
+    return summary
 
 
 SEGMENT_IDS_FILE = "segment_ids.npy"

@@ -12,13 +12,13 @@ from typing import Annotated
 import numpy as np
 
 from services.keyframe_vl.embedder import Embedder, warm_up_encoder
-from services.keyframe_vl.encoders import make_vl_encoder
-from services.keyframe_vl.segmenters import make_segmenter
 from shared.config.keyframe_vl import KeyframeVLConfig
 from shared.devices import resolve_device
 from shared.messages.keyframes import KeyframeMasks, KeyframeRequest, MaskFeatures
 from shared.messages.rpc import EmbedReply, EmbedRequest
 from shared.perception import KeyframeImage, Masks, Segmenter, VLEncoder
+from shared.perception.encoders import make_vl_encoder
+from shared.perception.segmenters import make_segmenter
 
 log = logging.getLogger(__name__)
 

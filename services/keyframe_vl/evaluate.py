@@ -21,9 +21,9 @@ def eval_segmenter(seq_dir: Path, cfg: TrackGraphConfig, *, every: int | None = 
     """Segment every K_f-th frame (the keyframes) and match each ground-truth object larger
     than 0.5% of the image to its best mask. ``mean_best_iou`` averages over all such
     (keyframe, object) pairs; ``objects`` counts them."""
-    from services.keyframe_vl.segmenters import make_segmenter
     from services.mapping import prepare_config
     from shared.perception import KeyframeImage
+    from shared.perception.segmenters import make_segmenter
 
     cfg = prepare_config(cfg, Path(seq_dir))
     reader = open_sequence(seq_dir, cfg.source.dataset, cfg.source)

@@ -15,12 +15,13 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
 from shared.messages.keyframes import KeyframeMasks, KeyframeRequest, MaskFeatures
 from shared.messages.rpc import EmbedReply, EmbedRequest
-from shared.perception import KeyframeImage, Masks
+from shared.perception import KeyframeImage, Masks, VLEncoder
 from shared.runtime.bus import Bus
 from shared.runtime.session import Session
 from shared.runtime.status import StatusBook
@@ -38,15 +39,31 @@ class ClipJob:
     """When its request arrived (the keyframe's latency is measured from there)."""
 
 
+class KeyframeVLModels(Protocol):
+    """What the session drives: :class:`~services.keyframe_vl.core.KeyframeVLCore`, or a
+    stand-in with the same calls."""
+
+    encoder: VLEncoder
+    """Names the model in an error answer."""
+
+    def segment(self, req: KeyframeRequest) -> tuple[KeyframeImage, Masks, KeyframeMasks]:
+        """The keyframe's image, its masks, and the message that carries them."""
+
+    def features(self, image: KeyframeImage, masks: Masks) -> MaskFeatures:
+        """The CLIP features of ``masks`` (and the keyframe's view)."""
+
+    def embed(self, req: EmbedRequest) -> EmbedReply:
+        """A text's embedding, for ``vl/embed``."""
+
+
 class KeyframeVLSession(Session):
-    """A :class:`~services.keyframe_vl.core.KeyframeVLCore` (or anything with its
-    ``segment``/``features``/``embed``/``encoder``) on a bus."""
+    """A :class:`KeyframeVLModels` on a bus."""
 
     service = "keyframe_vl"
     serialized = False  # segmentation, CLIP and embeddings run on their own threads, as the core allows
 
     def __init__(
-        self, bus: Bus, core, *, defer_clip: Callable[[ClipJob], None] | None = None,
+        self, bus: Bus, core: KeyframeVLModels, *, defer_clip: Callable[[ClipJob], None] | None = None,
         clock: Callable[[], float] = time.monotonic, book: StatusBook | None = None,
     ) -> None:  # fmt: skip
         super().__init__(bus, clock=clock, book=book)

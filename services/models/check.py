@@ -45,7 +45,7 @@ class ModelEntry:
 def dinov3_source(loader: str) -> str:
     """Where the weights of DINOv3 ``loader`` (transformers / timm / hub) come from."""
     try:
-        from services.tracker.features.dinov3 import WHERE
+        from shared.perception.features.dinov3 import WHERE
     except ImportError:  # no torch here: the loader could not run either, the general text will do
         return DINOV3_SOURCE
     return f"DINOv3 ViT-S+/16 for tracker.features.loader {loader}: {WHERE[loader]}"
@@ -54,7 +54,7 @@ def dinov3_source(loader: str) -> str:
 def needed(cfg: TrackGraphConfig) -> list[tuple[str, str, str, str]]:
     """(role, backend, path, source) of every weight file the config's backends read; the
     source is that backend's and loader's own (an ONNX backend's names the export too)."""
-    from services.keyframe_vl.encoders.weights import weights_hint
+    from shared.perception.encoders.weights import weights_hint
 
     out = []
     seg = cfg.keyframe_vl.segmenter
@@ -77,15 +77,15 @@ def needed(cfg: TrackGraphConfig) -> list[tuple[str, str, str, str]]:
 
 def _load(cfg: TrackGraphConfig, role: str) -> None:
     if role == "segmenter":
-        from services.keyframe_vl.segmenters import make_segmenter
+        from shared.perception.segmenters import make_segmenter
 
         make_segmenter(cfg.keyframe_vl.segmenter)
     elif role == "vl_encoder":
-        from services.keyframe_vl.encoders import make_vl_encoder
+        from shared.perception.encoders import make_vl_encoder
 
         make_vl_encoder(cfg.keyframe_vl.vl)
     else:
-        from services.tracker.features import make_dense_features
+        from shared.perception.features import make_dense_features
 
         make_dense_features(cfg.tracker.features)
 

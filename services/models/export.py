@@ -32,15 +32,15 @@ def export_all(
         raise ValueError("nothing to export: the config names no torch backend (fastsam, openclip, dinov3)")
     out.mkdir(parents=True, exist_ok=True)
     if "segmenter" in want and seg.backend == "fastsam":
-        from services.keyframe_vl.segmenters.fastsam_onnx import export_fastsam_onnx
+        from shared.perception.segmenters.fastsam_onnx import export_fastsam_onnx
 
         done["segmenter"] = str(export_fastsam_onnx(seg.weights, out / "fastsam.onnx", seg.imgsz, dynamic=not fastsam_static))
     if "vl_encoder" in want and vl.backend == "openclip":
-        from services.keyframe_vl.encoders.clip_onnx import export_clip_onnx
+        from shared.perception.encoders.clip_onnx import export_clip_onnx
 
         done["vl_encoder"] = str(export_clip_onnx(vl.model, vl.weights, out / "clip"))
     if "dense_features" in want and feats.backend == "dinov3":
-        from services.tracker.features import export_dinov3_onnx
+        from shared.perception.features import export_dinov3_onnx
 
         done["dense_features"] = str(export_dinov3_onnx(feats, out / "dinov3.onnx"))
     for role, path in done.items():

@@ -16,11 +16,12 @@ def save_random_fastsam(path: str | Path, variant: str = "x", seed: int = 0, ali
     keeps scores spread, so confidence thresholds and NMS cost what they do with real weights.
     """
     import torch
+
+    from shared.perception.segmenters.fastsam import import_ultralytics
+
+    import_ultralytics()  # before any ultralytics module: it leaves PIL as it was
     from ultralytics.nn.tasks import SegmentationModel, yaml_model_load
 
-    from services.keyframe_vl.segmenters.fastsam import import_ultralytics
-
-    import_ultralytics()
     torch.manual_seed(seed)
     spec = yaml_model_load(f"yolov8{variant}-seg.yaml")  # ships inside ultralytics
     spec["nc"] = 1

@@ -9,37 +9,28 @@ from __future__ import annotations
 
 from services.query.session import QuerySession
 from shared.config.root import TrackGraphConfig
-from shared.runtime.adapter import SessionNode
-from shared.transport import ZenohBus
+from shared.runtime.adapter import SessionNode, open_bus, session_attr
 
 TICK_S = 0.05
 """How often the session is ticked: a gap is noticed at once, the request follows within this."""
 
 
 class QueryNode(SessionNode):
-    """Serves ``trackgraph/<robot>/query`` over Zenoh; pass a zenoh ``session`` to share one."""
+    """Serves ``trackgraph/<robot>/query`` over Zenoh; pass a zenoh ``session`` to share one.
+    The session declares its liveliness itself, once its text path answered."""
+
+    # What tests and benchmarks look at, as before the session existed.
+    sync = session_attr("sync")
+    index = session_attr("index")
+    deltas = session_attr("deltas")
+    queryable = session_attr("queryable")
 
     def __init__(self, cfg: TrackGraphConfig, *, session=None) -> None:
         self.cfg = cfg
-        bus = ZenohBus.open(cfg.transport, cfg.robot_id) if session is None else ZenohBus(session, cfg.robot_id, cfg.transport.codec)
-        super().__init__(bus, lambda b: QuerySession(cfg, b), name="query", tick_s=TICK_S, stop_timeout_s=cfg.transport.query_timeout_s + 1)
-
-    # What tests and benchmarks look at, as before the session existed.
-    @property
-    def sync(self):
-        return self.session.sync
-
-    @property
-    def index(self):
-        return self.session.index
-
-    @property
-    def deltas(self):
-        return self.session.deltas
-
-    @property
-    def queryable(self):
-        return self.session.queryable
+        super().__init__(
+            open_bus(cfg, session), lambda b: QuerySession(cfg, b), name="query", tick_s=TICK_S,
+            stop_timeout_s=cfg.transport.query_timeout_s + 1,
+        )  # fmt: skip
 
     def stats(self) -> dict:
         report = self.book.report()

@@ -48,8 +48,8 @@ class OfflineQueries:
 
     def __init__(self, map_dir: Path, cfg: TrackGraphConfig | None = None) -> None:
         from services.keyframe_vl.embedder import Embedder
-        from services.keyframe_vl.encoders import make_vl_encoder
         from shared.devices import resolve_device
+        from shared.perception.encoders import make_vl_encoder
 
         self.cfg = cfg or map_config(map_dir)
         self.index = load_index(map_dir, self.cfg.query.min_view_share)
@@ -74,8 +74,8 @@ class MapTextEncoder:
     built with CLIP is scored in CLIP's space, not in the MiniLM space of simulated maps."""
 
     def __init__(self, cfg: TrackGraphConfig) -> None:
-        from services.keyframe_vl.encoders import make_vl_encoder
         from shared.devices import resolve_device
+        from shared.perception.encoders import make_vl_encoder
 
         self._encoder = make_vl_encoder(
             cfg.keyframe_vl.vl, device=resolve_device(cfg.query.device, "query.device"), fp16=cfg.keyframe_vl.fp16

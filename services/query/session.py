@@ -80,8 +80,8 @@ class QuerySession:
         self._clock = clock
         self._embedder = embedder
         if self._embedder is None and cfg.query.embed == "local":
-            from services.keyframe_vl.encoders import make_vl_encoder
             from shared.devices import resolve_device
+            from shared.perception.encoders import make_vl_encoder
 
             # The text tower (ViT-H-14's needs about 4 GB) runs where the config puts it.
             encoder = make_vl_encoder(

@@ -1,4 +1,5 @@
-"""ROS 2 on the wire: the live source, the markers-and-queries bridge, the bag player."""
+"""ROS 2 on the wire: the live source (its frame assembler in :mod:`services.ros2.live`), the
+markers-and-queries bridge, the bag player."""
 
 from shared.registry import SERVICES, ServiceEntry
 

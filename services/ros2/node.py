@@ -23,7 +23,7 @@ from pathlib import Path
 from services.ros2.session import Ros2BridgeSession, Ros2SourceSession
 from shared.config.root import TrackGraphConfig
 from shared.ros2.link import ZenohRosWire
-from shared.runtime.adapter import SessionNode
+from shared.runtime.adapter import SessionNode, open_bus
 from shared.runtime.lifeline import install_stop_handlers
 from shared.topics import Topics, service_of_alive_key
 from shared.transport import LivelinessWatcher, ZenohBus, open_session
@@ -52,31 +52,23 @@ class Ros2SourceNode(SessionNode):
     ``trackgraph source --ros2`` (and of tests that drive one in-process)."""
 
     def __init__(self, cfg: TrackGraphConfig, *, session=None) -> None:
-        bus = ZenohBus(session, cfg.robot_id, cfg.transport.codec) if session is not None else ZenohBus.open(cfg.transport, cfg.robot_id)
         topics = Topics(cfg.robot_id)
         self.wire: ZenohRosWire | None = None
         self.alive: LivelinessWatcher | None = None
-        self.token = None
 
         def make(b: ZenohBus) -> Ros2SourceSession:
-            self.wire = ZenohRosWire.open(cfg.ros2.link, session=b.session, transport=cfg.transport)
-            try:
-                self.alive = LivelinessWatcher(b.session, topics.alive_all)
-                alive = self.alive
+            self.wire = self.own(ZenohRosWire.open(cfg.ros2.link, session=b.session, transport=cfg.transport))
+            alive = self.alive = self.own(LivelinessWatcher(b.session, topics.alive_all))
 
-                def stages() -> set[str]:
-                    return {service_of_alive_key(k) for k in alive.alive()}
+            def stages() -> set[str]:
+                return {service_of_alive_key(k) for k in alive.alive()}
 
-                s = Ros2SourceSession(b, self.wire, cfg, alive=stages)
-                self.token = b.declare_alive(topics.alive("source"))
-                return s
-            except BaseException:
-                if self.alive is not None:
-                    self.alive.close()
-                self.wire.close()
-                raise
+            return Ros2SourceSession(b, self.wire, cfg, alive=stages)
 
-        super().__init__(bus, make, name="ros2-source", tick_s=TICK_S, stop_timeout_s=cfg.transport.query_timeout_s + 1)
+        super().__init__(
+            open_bus(cfg, session), make, name="ros2-source", tick_s=TICK_S, stop_timeout_s=cfg.transport.query_timeout_s + 1,
+            alive="source", running=False,
+        )  # fmt: skip
         inp = cfg.ros2.input
         log.info(
             "ROS 2 source (%s, domain %d): %s + %s + %s, poses from %s, on %s",
@@ -94,21 +86,12 @@ class Ros2SourceNode(SessionNode):
 
     def close(self, keep_bus: bool = False) -> None:
         """Stop: the EndOfSequence out (fusion may finish its map), then everything closed."""
-        if self._closed:
-            return
-        try:
-            self.session.finish()
-        except Exception:  # noqa: BLE001 - closing anyway
-            log.exception("ROS 2 source: the EndOfSequence did not go out")
-        super().close(keep_bus=True)
-        if self.token is not None:
-            self.token.undeclare()
-        if self.alive is not None:
-            self.alive.close()
-        if self.wire is not None:
-            self.wire.close()
-        if not keep_bus:
-            self.bus.close()
+        if not self._closed and self.session is not None:
+            try:
+                self.session.finish()
+            except Exception:  # noqa: BLE001 - closing anyway
+                log.exception("ROS 2 source: the EndOfSequence did not go out")
+        super().close(keep_bus)
 
 
 def run_ros2_source(
@@ -132,36 +115,20 @@ def run_ros2_source(
 
 
 class Ros2BridgeNode(SessionNode):
-    """:class:`Ros2BridgeSession` on Zenoh: ``trackgraph serve ros2``."""
+    """:class:`Ros2BridgeSession` on Zenoh: ``trackgraph serve ros2``. The session declares
+    its liveliness itself, once its ROS 2 side is up."""
 
     def __init__(self, cfg: TrackGraphConfig, *, session=None) -> None:
-        bus = ZenohBus(session, cfg.robot_id, cfg.transport.codec) if session is not None else ZenohBus.open(cfg.transport, cfg.robot_id)
-        wires: list[ZenohRosWire] = []
-
         def make(b: ZenohBus) -> Ros2BridgeSession:
-            wire = ZenohRosWire.open(cfg.ros2.link, session=b.session, transport=cfg.transport)
-            wires.append(wire)
-            try:
-                return Ros2BridgeSession(b, wire, cfg)
-            except BaseException:
-                wire.close()
-                raise
+            self.wire = self.own(ZenohRosWire.open(cfg.ros2.link, session=b.session, transport=cfg.transport))
+            return Ros2BridgeSession(b, self.wire, cfg)
 
-        super().__init__(bus, make, name="ros2", tick_s=0.05, stop_timeout_s=cfg.transport.query_timeout_s + 1)
-        self.wire = wires[0]
+        super().__init__(open_bus(cfg, session), make, name="ros2", tick_s=0.05, stop_timeout_s=cfg.transport.query_timeout_s + 1)
 
     def stats(self) -> dict:
         s = self.session
         return {"markers_sent": s.markers_sent, "paths_sent": s.paths_sent, "queries_answered": s.queries_answered,
                 "queries_refused": s.queries_refused}  # fmt: skip
-
-    def close(self, keep_bus: bool = False) -> None:
-        if self._closed:
-            return
-        super().close(keep_bus=True)
-        self.wire.close()
-        if not keep_bus:
-            self.bus.close()
 
 
 @dataclass

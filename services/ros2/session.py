@@ -3,7 +3,7 @@
 
 :class:`Ros2SourceSession` is ``trackgraph source --ros2``: the robot's colour, depth,
 CameraInfo and TF (or odometry) topics in, synchronised by a
-:class:`~shared.ros2.live.FrameAssembler`, TrackGraph ``frames`` out. A live robot does not
+:class:`~services.ros2.live.FrameAssembler`, TrackGraph ``frames`` out. A live robot does not
 wait for the mapper, so frames are never queued behind a slow stage: at most
 ``ros2.input.window_frames`` may be unacknowledged by the pacing stages
 (``source.ack_from``), and while the pipeline holds, a newer synchronised frame replaces the
@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationError
 
+from services.ros2.live import FrameAssembler
 from services.source.core import Pacer
 from shared.config.root import TrackGraphConfig
 from shared.graph.scene import GraphReplica
@@ -39,10 +40,9 @@ from shared.messages.poses import PoseCorrection
 from shared.messages.rpc import QueryReply, QueryRequest
 from shared.ros2 import markers
 from shared.ros2.corrections import CorrectionBuilder, read_path
-from shared.ros2.live import FrameAssembler
 from shared.ros2.types import RosDecodeError, decode, msg_class
 from shared.ros2.wire import RosWire
-from shared.runtime.bus import Bus, BusError
+from shared.runtime.bus import Bus, BusError, subscribe_counted
 from shared.runtime.session import Session
 from shared.runtime.status import StatusBook
 from shared.topics import Topics
@@ -300,12 +300,11 @@ class Ros2BridgeSession:
                 capacity=256, name="ros2:delta",
             )  # fmt: skip
             self._endpoints.append(self.graph)
-            self.frames = bus.subscribe(
-                self.topics.tracks_frame, TrackedFrame, self._on_frame, policy="latest", capacity=1, name="ros2:frame",
-                on_drop=lambda: book.count("tracks_frame", "dropped"), on_reject=lambda _why: book.count("tracks_frame", "rejected"),
+            self.frames = subscribe_counted(
+                bus, book, "tracks_frame", self.topics.tracks_frame, TrackedFrame, self._on_frame, policy="latest", capacity=1,
+                name="ros2:frame",
             )  # fmt: skip
             self._endpoints.append(self.frames)
-            book.declare_input("tracks_frame", self.frames.pending)
             for name, value in {
                 "markers_sent": lambda: self.markers_sent, "paths_sent": lambda: self.paths_sent,
                 "queries_answered": lambda: self.queries_answered, "queries_refused": lambda: self.queries_refused,

@@ -17,10 +17,11 @@ from services.source.core import ReplayStats
 from services.source.session import SourceSession
 from shared.config.root import TrackGraphConfig
 from shared.datasets import open_sequence
+from shared.runtime.adapter import SessionNode, open_bus
 from shared.runtime.lifeline import install_stop_handlers, start_lifeline
 from shared.runtime.status import StatusReporter
 from shared.topics import Topics, service_of_alive_key
-from shared.transport import LivelinessWatcher, TransportError, ZenohBus
+from shared.transport import LivelinessWatcher, TransportError
 
 log = logging.getLogger(__name__)
 
@@ -46,19 +47,25 @@ def run_source(
     lifeline = start_lifeline()  # launched: end with the launcher, however it ends
     reader = open_sequence(sequence, cfg.source.dataset, cfg.source)
     topics = Topics(cfg.robot_id)
-    bus = ZenohBus.open(cfg.transport, cfg.robot_id)
+    bus = open_bus(cfg)
     if lifeline is not None:
         lifeline.stop_with(stop_now)  # connected: from now on the launcher's death is an orderly stop
-    reporter = session = alive = token = bar = None
-    try:
-        token = bus.declare_alive(topics.alive("source"))
-        alive = LivelinessWatcher(bus.session, topics.alive_all)
-        wake = threading.Event()
+    wake = threading.Event()
+
+    def make(b) -> SourceSession:
+        alive = node.own(LivelinessWatcher(b.session, topics.alive_all))
 
         def stages() -> set[str]:
             return {service_of_alive_key(k) for k in alive.alive()}
 
-        session = SourceSession(bus, reader, cfg.source, alive=stages, on_ack=wake.set)
+        return SourceSession(b, reader, cfg.source, alive=stages, on_ack=wake.set)
+
+    # Driven by the loop below, not ticked; "running" once a lossless replay has its consumer.
+    node = reporter = bar = None
+    try:
+        node = SessionNode(bus, make, name="source", alive="source", running=False, start=False)
+        node.start()
+        session = node.session
         bar = _progress_bar(progress, total=len(session.cursor.plan))
         if bar is not None:
             session.on_progress = lambda _stats: bar.update(1)
@@ -83,12 +90,8 @@ def run_source(
     finally:
         if bar is not None:
             bar.close()
-        if alive is not None:
-            alive.close()
-        if session is not None:
-            session.close()
-        if token is not None:
-            token.undeclare()
+        if node is not None:
+            node.close(keep_bus=True)
         if reporter is not None:
             reporter.stop(status_file)
         bus.close()

@@ -91,7 +91,6 @@ from services.tracker.association import (
     mask_prototypes,
     sparse_mask_iou,
 )
-from services.tracker.features.base import DenseFeatures
 from services.tracker.footprints import (
     Footprint,
     mask_footprint,
@@ -110,6 +109,7 @@ from shared.config.tracker import TrackerConfig
 from shared.messages.frames import Frame, TrackedFrame, TrackObservation
 from shared.messages.keyframes import KeyframeRequest, TrackFeature, TrackFeatures
 from shared.perception import Masks
+from shared.perception.features.base import DenseFeatures
 
 log = logging.getLogger(__name__)
 
@@ -153,7 +153,10 @@ class FrameState:
 
 
 class TrackerCore:
-    """Source tracks over a frame stream; see the module docstring for the call protocol."""
+    """Source tracks over a frame stream; see the module docstring for the call protocol (a
+    :class:`~services.tracker.protocol.MaskTracker`)."""
+
+    takes_masks = True
 
     def __init__(self, cfg: TrackerConfig, features: DenseFeatures) -> None:
         self.cfg = cfg

@@ -38,7 +38,11 @@ def identity_feature(track_id: int, dim: int = DINO_DIM) -> Annotated[np.ndarray
 
 
 class GroundTruthTracker:
-    """Same call protocol as :class:`services.tracker.core.TrackerCore`, minus the masks."""
+    """A :class:`~services.tracker.protocol.FrameTracker`: the call protocol of
+    :class:`services.tracker.core.TrackerCore`, minus the masks (it asks for none)."""
+
+    takes_masks = False
+    """Identities come from the ground truth: keyframe_vl's answers are not for it."""
 
     def __init__(
         self,

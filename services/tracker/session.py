@@ -32,9 +32,10 @@ import logging
 import secrets
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import cast
 
 from services.tracker.pace import KeyframeLedger
+from services.tracker.protocol import FrameTracker, MaskTracker
 from services.tracker.resend import Unacked
 from shared.config.root import TrackGraphConfig
 from shared.messages.frames import EndOfSequence, Frame, FrameAck, TrackedFrame
@@ -47,7 +48,8 @@ log = logging.getLogger(__name__)
 
 
 class TrackerSession(Session):
-    """A tracker core (``TrackerCore`` or the ground-truth tracker) on a bus.
+    """A tracker core (``TrackerCore`` or the ground-truth tracker, see
+    :mod:`services.tracker.protocol`) on a bus.
 
     ``wait_for_masks`` overrides ``cfg.tracker.wait_for_masks`` (``trackgraph map`` always
     waits: its keyframe_vl answers within the same delivery round).
@@ -56,11 +58,13 @@ class TrackerSession(Session):
     service = "tracker"
 
     def __init__(
-        self, bus: Bus, cfg: TrackGraphConfig, core: Any, *, wait_for_masks: bool | None = None,
+        self, bus: Bus, cfg: TrackGraphConfig, core: FrameTracker, *, wait_for_masks: bool | None = None,
         clock: Callable[[], float] = time.monotonic, inbox: Inbox | None = None,
     ) -> None:  # fmt: skip
         super().__init__(bus, clock=clock, inbox=inbox)
         self.core = core
+        self._mask_tracker: MaskTracker | None = cast(MaskTracker, core) if core.takes_masks else None
+        """The core, when keyframe_vl's masks and CLIP features are applied to it."""
         self.timeout_s = cfg.tracker.keyframe_timeout_s
         self.wait_for_masks = cfg.tracker.wait_for_masks if wait_for_masks is None else wait_for_masks
         live = cfg.source.mode == "live"
@@ -248,8 +252,8 @@ class TrackerSession(Session):
             if msg.error:
                 self.keyframes.failed += 1
                 log.warning("keyframe %d: keyframe_vl failed (%s); propagating on", k, msg.error)
-            elif hasattr(self.core, "apply_masks"):
-                if self.core.apply_masks(k, Masks(msg.masks, msg.boxes, msg.scores)):
+            elif self._mask_tracker is not None:
+                if self._mask_tracker.apply_masks(k, Masks(msg.masks, msg.boxes, msg.scores)):
                     self.awaiting_features[k] = now
                     self.keyframes.masks(k, now)
                 else:
@@ -282,8 +286,8 @@ class TrackerSession(Session):
         if msg.error is not None:
             self.keyframes.failed += 1
             log.warning("keyframe %d: no CLIP features (%s)", k, msg.error)
-        elif hasattr(self.core, "apply_features"):
-            self.core.apply_features(k, msg.features)
+        elif self._mask_tracker is not None:
+            self._mask_tracker.apply_features(k, msg.features)
             self.keyframes.features(k, self.clock())
             # At once, not with the next frame: after the last keyframe there is none.
             feats = self.core.take_track_features(k)
@@ -342,16 +346,13 @@ class TrackerSession(Session):
         """Expire keyframes whose masks are overdue (releasing what waits for them) and pass
         the end of the sequence on when it is due."""
         with self.lock:
-            try:
+            with self.recovering("tick"):
                 self._expire(now)
                 self._release()
                 self._maybe_end(now)
                 if self.unacked.due(now):
                     log.warning("fusion has not acknowledged frames for %.1f s: sending again the %d messages it has not", self.unacked.resend_after_s, len(self.unacked))
                     self._resend(now)
-            except Exception:  # noqa: BLE001 - the next tick tries again
-                self.book.error()
-                log.exception("tracker: tick failed")
             self._refresh()
 
     def _refresh(self) -> None:

@@ -11,8 +11,7 @@ from pathlib import Path
 
 from services.viewer.session import ViewerSession
 from shared.config.root import TrackGraphConfig
-from shared.runtime.adapter import SessionNode
-from shared.transport import ZenohBus
+from shared.runtime.adapter import SessionNode, open_bus
 
 TICK_S = 0.05
 """How often the session is ticked."""
@@ -23,9 +22,8 @@ class ViewerNode(SessionNode):
 
     def __init__(self, cfg: TrackGraphConfig, out_rrd: Path, *, session=None, frame_every: int = 10) -> None:
         self.cfg = cfg
-        bus = ZenohBus.open(cfg.transport, cfg.robot_id) if session is None else ZenohBus(session, cfg.robot_id, cfg.transport.codec)
         super().__init__(
-            bus, lambda b: ViewerSession(cfg, b, out_rrd, frame_every=frame_every),
+            open_bus(cfg, session), lambda b: ViewerSession(cfg, b, out_rrd, frame_every=frame_every),
             name="viewer", tick_s=TICK_S, stop_timeout_s=cfg.transport.query_timeout_s + 1,
         )  # fmt: skip
 

@@ -62,6 +62,11 @@ class View:
     def labels(self) -> tuple[str, str]:
         return "xyz"[self.a] + " [m]", "xyz"[self.b] + " [m]"
 
+    def label_axes(self, ax, fontsize: float) -> None:
+        """Name the plot's horizontal and vertical axes after the world axes drawn."""
+        ax.set_xlabel(self.labels[0], fontsize=fontsize)
+        ax.set_ylabel(self.labels[1], fontsize=fontsize)
+
 
 _VIEWS = {"z": View(0, 1, 2, 1.0), "x": View(1, 2, 0, 1.0), "y": View(2, 0, 1, 1.0), "-y": View(0, 2, 1, -1.0)}
 
@@ -263,8 +268,7 @@ def render_map_png(
         _draw_hits(ax, hits, view)
         _hit_legend(ax, hits, query_text)
     _frame_legend(ax)
-    ax.set_xlabel(view.labels[0], fontsize=10)
-    ax.set_ylabel(view.labels[1], fontsize=10)
+    view.label_axes(ax, 10)
     ax.set_title(title or _summary(snapshot), fontsize=12)
     return _save(fig, out_png)
 
@@ -301,8 +305,7 @@ def render_query_sheet(
         scores = ", ".join(f"#{i} {h.score:.2f}" for i, h in enumerate(top, start=1)) or "no hits"
         ax.set_title(f"\u201c{text}\u201d\n{scores}", fontsize=9)
         ax.tick_params(labelsize=7)
-        ax.set_xlabel(view.labels[0], fontsize=7)
-        ax.set_ylabel(view.labels[1], fontsize=7)
+        view.label_axes(ax, 7)
     fig.suptitle(title or _summary(snapshot), fontsize=11)
     return _save(fig, out_png)
 

@@ -49,7 +49,7 @@ class TSDFConfig(StrictModel):
     again replaces its older archived copy. True brings archived blocks back into the active
     TSDF instead, hypotheses included."""
     vote_backend: Literal["auto", "numba", "torch"] = "auto"
-    """Not in the paper: what runs the eq. 5 hypothesis vote (``services/fusion/hypotheses.py``;
+    """Not in the paper: what runs the eq. 5 hypothesis vote (``services/fusion/volume/hypotheses.py``;
     the two give the same weights bit for bit). ``numba``: a kernel over Open3D's zero-copy
     views, CPU only: 8-9 ms of vote per frame (analytic room of ``benchmarks/fusion.py``,
     640x480, 3 cm voxels, this 2-core CPU at load 3-5), plus about 1.2 s of JIT compilation
@@ -151,7 +151,7 @@ class GraphConfig(StrictModel):
     """Not in the paper: places and rooms are built from a sample of everything ever meshed
     (active window and archive), one point kept per cube of this edge. 0.05 m is half the
     free-space grid's 0.1 m cell (``FreeSpaceParams.resolution_m``,
-    ``services/fusion/places.py``), so a surface that crosses a grid cell leaves points in
+    ``services/fusion/layers/places.py``), so a surface that crosses a grid cell leaves points in
     it, and is the 0.05 m the paper downsamples output point clouds to for evaluation. The
     sample, kept whole in memory and in snapshots, grows about four-fold per halving
     (surfaces are 2D)."""

@@ -2,105 +2,12 @@
 
 from __future__ import annotations
 
-from abc import abstractmethod
 from typing import Literal
 
 from pydantic import Field, model_validator
 
-from shared.config.backends import BackendConfig, backend_config, backend_section
-from shared.config.base import Device, Precision, StrictModel
-from shared.registry import Registry
-
-DENSE_FEATURES: Registry[type[DenseFeaturesBackend]] = Registry("dense-feature backend")
-"""Dense per-patch feature backends (``tracker.features.backend``)."""
-
-
-class DenseFeaturesBackend(BackendConfig):
-    """Dense per-patch features used to carry mask identity (DINOv3 in the paper): what every
-    backend's grid is."""
-
-    short_side: int = Field(720, ge=16)
-    """Input resize: short side in pixels, rounded to a multiple of the patch size
-    (IV-A: 720, 480 onboard)."""
-    patch_size: int = Field(16, ge=1)
-    """Patch size of the backbone, and the grid of the classical descriptors."""
-
-    @abstractmethod
-    def build(self, device: str = "cpu", fp16: bool = True):
-        """The :class:`~services.tracker.features.base.DenseFeatures` this config describes,
-        on ``device`` (``cpu``, ``cuda``, ``cuda:N``; resolved by the caller). ``fp16`` says
-        whether a ``precision: auto`` may be half precision on CUDA."""
-
-
-class _Dinov3Weights(DenseFeaturesBackend):
-    """Where DINOv3 ViT-S+/16 comes from."""
-
-    loader: Literal["transformers", "timm", "hub"] = "transformers"
-    """How the weights are stored: a transformers folder, a timm file or a hub .pth (for
-    ``dinov3_onnx``: the checkpoint an export was made from, named by ``models check``)."""
-    weights: str = "weights/dinov3_vits16plus"
-    """Local ViT-S+/16 weights; never downloaded."""
-
-
-@DENSE_FEATURES.register("dinov3")
-class Dinov3Config(_Dinov3Weights):
-    """DINOv3 ViT-S+/16 on torch: the paper's backbone (III-B)."""
-
-    backend: Literal["dinov3"] = "dinov3"
-    """DINOv3 on torch (services/tracker/features/dinov3.py)."""
-    precision: Precision = "auto"
-    """DINOv3's arithmetic under torch autocast (the weights, the final norm and the
-    per-patch normalisation stay fp32): ``fp32``, ``fp16`` or ``bf16``. ``auto`` is fp16 on
-    CUDA (tensor cores run half precision at full rate) and fp32 on a CPU, where fp16 is
-    emulated: a random-weight ViT-S+/16 at 112 px took 0.32 s fp32, 0.21 s bf16 and 1.74 s
-    fp16 on this 2-core CPU, with patch cosines to fp32 of at least 0.99999 in both."""
-
-    def build(self, device: str = "cpu", fp16: bool = True):
-        from services.tracker.features.dinov3 import Dinov3Features, load_patch_tokens
-        from shared.devices import resolve_precision
-
-        model = load_patch_tokens(self.loader, self.weights)
-        if model.patch_size != self.patch_size:
-            raise ValueError(f"DINOv3 weights have patch size {model.patch_size}, tracker.features.patch_size says {self.patch_size}")
-        return Dinov3Features(model, self.short_side, device, resolve_precision(self.precision, device, fp16))
-
-
-@DENSE_FEATURES.register("dinov3_onnx")
-class Dinov3OnnxConfig(_Dinov3Weights):
-    """DINOv3 exported to one ONNX file (``trackgraph export-onnx``), run by onnxruntime in
-    the precision of its export."""
-
-    backend: Literal["dinov3_onnx"] = "dinov3_onnx"
-    """DINOv3's ONNX export on onnxruntime (services/tracker/features/onnx_backend.py)."""
-    weights: str = "weights/dinov3_vits16plus.onnx"
-    """The ``.onnx`` export; never downloaded."""
-
-    def build(self, device: str = "cpu", fp16: bool = True):
-        from services.tracker.features.onnx_backend import Dinov3OnnxFeatures
-
-        return Dinov3OnnxFeatures(self.weights, self.short_side, self.patch_size, device)
-
-
-@DENSE_FEATURES.register("classical")
-class ClassicalFeaturesConfig(DenseFeaturesBackend):
-    """Per-patch colour, gradient and depth descriptors: no weights."""
-
-    backend: Literal["classical"] = "classical"
-    """Classical descriptors (services/tracker/features/classical.py)."""
-
-    def build(self, device: str = "cpu", fp16: bool = True):
-        from services.tracker.features.classical import ClassicalFeatures
-
-        return ClassicalFeatures(self.short_side, self.patch_size, device)
-
-
-DenseFeaturesSection, _features_default = backend_section(DENSE_FEATURES, DenseFeaturesBackend, "dinov3")
-"""``tracker.features``: the fields of the backend its ``backend`` key names."""
-
-
-def dense_features_config(**fields) -> DenseFeaturesBackend:
-    """A ``tracker.features`` section from keyword fields (``backend`` default ``dinov3``)."""
-    return backend_config(DENSE_FEATURES, "dinov3", **fields)
+from shared.config.base import Device, StrictModel
+from shared.perception.features.config import DenseFeaturesSection, features_default
 
 
 class PropagationConfig(StrictModel):
@@ -187,7 +94,7 @@ class TrackerConfig(StrictModel):
     from a synthetic scene's instance images, to measure fusion alone."""
     keyframe_interval: int = Field(24, ge=1)
     """K_f, frames between keyframes (III-B)."""
-    features: DenseFeaturesSection = _features_default
+    features: DenseFeaturesSection = features_default
     """Dense feature backend: ``backend`` (``dinov3``, ``dinov3_onnx``, ``classical``) and that
     backend's fields."""
     propagation: PropagationConfig = Field(default_factory=PropagationConfig)

@@ -1,6 +1,7 @@
 """Dataset readers (docs/architecture.md, "Input formats") behind one factory, :func:`open_sequence`,
 and one registry, ``DATASETS``: a reader is a :class:`SequenceReader` in a module of its own,
-registered here with one line."""
+registered here with one line. A reader of one image file per frame builds on
+:class:`shared.datasets.folder.FolderReader`, which reads and checks the frames."""
 
 from __future__ import annotations
 

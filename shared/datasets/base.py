@@ -9,8 +9,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from pathlib import Path
-from types import TracebackType
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, ClassVar
 
 import numpy as np
 
@@ -37,12 +36,14 @@ class SequenceReader(ABC):
     root: Path
     intrinsics: Intrinsics
     depth_scale: float
+    options: ClassVar[str | None] = None
+    """The section of the source config this reader takes as its second argument (``"tum"``
+    for TUM's association limit, ``"rosbag"`` for a bag's topics); None: it takes none."""
 
     @classmethod
     def open(cls, path: Path | str, config: SourceConfig) -> SequenceReader:
-        """The reader of the sequence at ``path``; ``config`` is the source config, for the
-        readers that take options from it (TUM's association limit, a bag's topics)."""
-        return cls(path)
+        """The reader of the sequence at ``path``; ``config`` is the source config."""
+        return cls(path, getattr(config, cls.options)) if cls.options else cls(path)
 
     @abstractmethod
     def __len__(self) -> int:
@@ -77,7 +78,5 @@ class SequenceReader(ABC):
     def __enter__(self) -> SequenceReader:
         return self
 
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()

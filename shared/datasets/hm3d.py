@@ -19,20 +19,10 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from shared.datasets.base import DatasetError, SequenceReader
-from shared.datasets.files import (
-    check_index,
-    check_size,
-    checked_pose,
-    load_intrinsics_json,
-    natural_key,
-    read_pose_file,
-    read_rgb,
-    read_uint16,
-    require_dir,
-)
-from shared.geometry import OPENGL_TO_OPENCV, Intrinsics, Pose
-from shared.messages.frames import Frame
+from shared.datasets.base import DatasetError
+from shared.datasets.files import checked_pose, natural_key, read_pose_file, require_dir
+from shared.datasets.folder import FolderReader, intrinsics_or_default
+from shared.geometry import OPENGL_TO_OPENCV, Intrinsics
 
 log = logging.getLogger(__name__)
 
@@ -46,7 +36,7 @@ def _listing(folder: Path, suffixes: tuple[str, ...]) -> list[Path]:
     return sorted((p for p in folder.iterdir() if p.suffix.lower() in suffixes), key=natural_key)
 
 
-class Hm3dReader(SequenceReader):
+class Hm3dReader(FolderReader):
     """HM3D walk folder; see the module docstring for the layout."""
 
     def __init__(self, root: Path | str) -> None:
@@ -66,35 +56,8 @@ class Hm3dReader(SequenceReader):
         self._poses = [
             checked_pose(read_pose_file(p) @ OPENGL_TO_OPENCV, str(p)) for p in pose_files[: len(self._rgb)]
         ]
-        path = self.root / "intrinsics.json"
-        if path.is_file():
-            self.intrinsics, scale = load_intrinsics_json(path)
-            self.depth_scale = scale or HM3D_DEPTH_SCALE
-            self._intrinsics_from = str(path)
-        else:
-            self.intrinsics, self.depth_scale = HM3D_INTRINSICS, HM3D_DEPTH_SCALE
-            self._intrinsics_from = "the HM3D defaults"
-        log.info("HM3D %s: %d frames, intrinsics from %s", self.root, len(self), self._intrinsics_from)
-
-    def __len__(self) -> int:
-        return len(self._rgb)
-
-    def pose(self, i: int) -> Pose:
-        return self._poses[check_index(i, len(self))]
-
-    def frame(self, i: int) -> Frame:
-        check_index(i, len(self))
-        K = self.intrinsics
-        rgb = read_rgb(self._rgb[i])
-        check_size(self._rgb[i], rgb, K.width, K.height, f"the intrinsics' size (from {self._intrinsics_from})")
-        depth = read_uint16(self._depth[i])
-        check_size(self._depth[i], depth, K.width, K.height, f"the colour image {self._rgb[i].name}")
-        return Frame(
-            frame_index=i,
-            time_s=i / NOMINAL_HZ,
-            rgb=rgb,
-            depth=depth,
-            depth_scale=self.depth_scale,
-            intrinsics=K,
-            T_world_cam=self._poses[i],
+        self._times = [i / NOMINAL_HZ for i in range(len(self._rgb))]
+        self.intrinsics, self.depth_scale, self._intrinsics_from = intrinsics_or_default(
+            self.root, HM3D_INTRINSICS, HM3D_DEPTH_SCALE, "the HM3D defaults"
         )
+        log.info("HM3D %s: %d frames, intrinsics from %s", self.root, len(self), self._intrinsics_from)

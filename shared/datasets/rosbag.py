@@ -26,7 +26,7 @@ from rosbags.highlevel import AnyReader, AnyReaderError
 from rosbags.interfaces import Connection
 from rosbags.typesys import Stores, get_typestore
 
-from shared.config.source import RosbagConfig, SourceConfig
+from shared.config.source import RosbagConfig
 from shared.datasets.base import DatasetError, SequenceReader
 from shared.datasets.files import check_index, checked_pose
 from shared.datasets.rosimage import decode_colour, decode_depth, depth_scale_of, image_size
@@ -69,9 +69,7 @@ def _pose_of(msg: Any) -> Pose:
 class RosbagReader(SequenceReader):
     """RGB-D frames with poses from a ROS 2 bag folder; see the module docstring."""
 
-    @classmethod
-    def open(cls, path: Path | str, config: SourceConfig) -> RosbagReader:
-        return cls(path, config.rosbag)
+    options = "rosbag"
 
     def __init__(self, path: Path | str, config: RosbagConfig | None = None) -> None:
         self.root = Path(path)

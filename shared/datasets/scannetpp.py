@@ -25,7 +25,7 @@ from typing import Annotated, Literal
 import numpy as np
 from PIL import Image
 
-from shared.datasets.base import DatasetError, SequenceReader
+from shared.datasets.base import DatasetError
 from shared.datasets.colmap import read_cameras, read_images
 from shared.datasets.files import (
     check_index,
@@ -37,8 +37,7 @@ from shared.datasets.files import (
     require_dir,
     require_file,
 )
-from shared.geometry import Pose
-from shared.messages.frames import Frame
+from shared.datasets.folder import FolderReader
 
 log = logging.getLogger(__name__)
 
@@ -64,7 +63,7 @@ def _iphone_dir(root: Path) -> Path:
     return root / "iphone" if (root / "iphone").is_dir() else root
 
 
-class ScanNetppReader(SequenceReader):
+class ScanNetppReader(FolderReader):
     """ScanNet++ iPhone sequence; see the module docstring for layout and resizing."""
 
     def __init__(self, root: Path | str, resize_to: Literal["depth", "rgb"] = "depth") -> None:
@@ -115,31 +114,20 @@ class ScanNetppReader(SequenceReader):
             )
         return wd, hd
 
-    def __len__(self) -> int:
-        return len(self._rgb)
-
-    def pose(self, i: int) -> Pose:
-        return self._poses[check_index(i, len(self))]
-
-    def frame(self, i: int) -> Frame:
+    def rgb(self, i: int) -> Annotated[np.ndarray, "(H, W, 3) uint8"]:
         check_index(i, len(self))
-        Kc = self._rgb_intrinsics
-        wd, hd = self._depth_size
+        Kc, K = self._rgb_intrinsics, self.intrinsics
         rgb = read_rgb(self._rgb[i])
         check_size(self._rgb[i], rgb, Kc.width, Kc.height, "the COLMAP camera in cameras.txt")
-        depth = read_uint16(self._depth[i])
-        check_size(self._depth[i], depth, wd, hd, f"the sequence's depth size (from {self._depth[0].name})")
-        K = self.intrinsics
         if rgb.shape[:2] != (K.height, K.width):
             rgb = np.array(Image.fromarray(rgb).resize((K.width, K.height), Image.Resampling.BOX))
+        return rgb
+
+    def depth(self, i: int) -> Annotated[np.ndarray, "(H, W) uint16"]:
+        check_index(i, len(self))
+        (wd, hd), K = self._depth_size, self.intrinsics
+        depth = read_uint16(self._depth[i])
+        check_size(self._depth[i], depth, wd, hd, f"the sequence's depth size (from {self._depth[0].name})")
         if depth.shape != (K.height, K.width):
             depth = upsample_nearest(depth, K.width, K.height)
-        return Frame(
-            frame_index=i,
-            time_s=self._times[i],
-            rgb=rgb,
-            depth=depth,
-            depth_scale=self.depth_scale,
-            intrinsics=K,
-            T_world_cam=self._poses[i],
-        )
+        return depth

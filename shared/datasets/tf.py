@@ -5,7 +5,7 @@ time (linear translation, slerp rotation). Unlike tf2, a query up to ``max_gap_n
 the recorded span takes the nearest sample instead of failing, because drivers often stamp
 the first image a few milliseconds before the first odometry transform.
 
-For a live stream (:mod:`shared.ros2.live`) the buffer also answers which dynamic edges a
+For a live stream (the ROS 2 source's frame assembler) the buffer also answers which dynamic edges a
 lookup needs and how new each one is, refuses to interpolate across a gap wider than a
 tolerance (``max_bracket_ns``), and forgets old samples (:meth:`TfBuffer.prune`), so its
 memory stays bounded however long the robot runs.
@@ -199,21 +199,22 @@ class TfBuffer:
 
     def latest_stamp(self, child: str) -> int | None:
         """Newest sample stamp (ns) of ``child``'s dynamic link; None if it has none."""
-        s = self._dynamic.get(normalize_frame(child))
-        if s is None or not s.stamps:
-            return None
-        if not self._sorted:
-            self._sort()
-        return s.stamps[-1]
+        stamps = self._sorted_stamps(child)
+        return stamps[-1] if stamps else None
 
     def oldest_stamp(self, child: str) -> int | None:
         """Oldest sample stamp (ns) still held for ``child``'s dynamic link."""
+        stamps = self._sorted_stamps(child)
+        return stamps[0] if stamps else None
+
+    def _sorted_stamps(self, child: str) -> list[int]:
+        """The sample stamps (ns) of ``child``'s dynamic link in time order; empty if it has none."""
         s = self._dynamic.get(normalize_frame(child))
         if s is None or not s.stamps:
-            return None
+            return []
         if not self._sorted:
             self._sort()
-        return s.stamps[0]
+        return s.stamps
 
     def latest_stamps(self) -> dict[str, int]:
         """Newest sample stamp (ns) of every dynamic link, by child frame."""

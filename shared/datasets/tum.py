@@ -24,21 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
-from shared.config.source import SourceConfig, TumConfig
-from shared.datasets.base import DatasetError, SequenceReader
-from shared.datasets.files import (
-    check_index,
-    check_size,
-    checked_pose,
-    load_intrinsics_json,
-    parse_floats,
-    read_rgb,
-    read_uint16,
-    require_file,
-)
+from shared.config.source import TumConfig
+from shared.datasets.base import DatasetError
+from shared.datasets.files import checked_pose, parse_floats, require_file
+from shared.datasets.folder import FolderReader, intrinsics_or_default
 from shared.datasets.timestamps import associate, nearest
 from shared.geometry import Intrinsics, Pose, pose_from_quat
-from shared.messages.frames import Frame
 
 log = logging.getLogger(__name__)
 
@@ -83,12 +74,10 @@ def read_groundtruth(path: Path) -> tuple[np.ndarray, list[Pose]]:
     return np.array([r[0] for r in rows], dtype=np.float64), [r[1] for r in rows]
 
 
-class TumReader(SequenceReader):
+class TumReader(FolderReader):
     """TUM RGB-D sequence; see the module docstring for association and intrinsics."""
 
-    @classmethod
-    def open(cls, path: Path | str, config: SourceConfig) -> TumReader:
-        return cls(path, config.tum)
+    options = "tum"
 
     def __init__(self, root: Path | str, config: TumConfig | None = None) -> None:
         self.root = Path(root)
@@ -118,36 +107,10 @@ class TumReader(SequenceReader):
         log.info("TUM %s: %d frames, intrinsics from %s", self.root, len(self), self._intrinsics_from)
 
     def _load_intrinsics(self) -> tuple[Intrinsics, float, str]:
-        path = self.root / "intrinsics.json"
-        if path.is_file():
-            K, scale = load_intrinsics_json(path)
-            return K, scale or TUM_DEPTH_SCALE, str(path)
-        if any(tag in self.root.name.lower() for tag in ("freiburg2", "freiburg3", "fr2", "fr3")):
+        named = any(tag in self.root.name.lower() for tag in ("freiburg2", "freiburg3", "fr2", "fr3"))
+        if named and not (self.root / "intrinsics.json").is_file():
             log.warning(
                 "TUM %s: the name suggests another sensor than freiburg1, but without intrinsics.json "
                 "the freiburg1 calibration is used", self.root,
             )  # fmt: skip
-        return TUM_FR1_INTRINSICS, TUM_DEPTH_SCALE, "the TUM freiburg1 defaults"
-
-    def __len__(self) -> int:
-        return len(self._rgb)
-
-    def pose(self, i: int) -> Pose:
-        return self._poses[check_index(i, len(self))]
-
-    def frame(self, i: int) -> Frame:
-        check_index(i, len(self))
-        K = self.intrinsics
-        rgb = read_rgb(self._rgb[i])
-        check_size(self._rgb[i], rgb, K.width, K.height, f"the intrinsics' size (from {self._intrinsics_from})")
-        depth = read_uint16(self._depth[i])
-        check_size(self._depth[i], depth, K.width, K.height, f"the colour image {self._rgb[i].name}")
-        return Frame(
-            frame_index=i,
-            time_s=self._times[i],
-            rgb=rgb,
-            depth=depth,
-            depth_scale=self.depth_scale,
-            intrinsics=K,
-            T_world_cam=self._poses[i],
-        )
+        return intrinsics_or_default(self.root, TUM_FR1_INTRINSICS, TUM_DEPTH_SCALE, "the TUM freiburg1 defaults")

@@ -4,7 +4,7 @@
   :class:`GraphReplica` that applies them;
 - :mod:`shared.graph.sync`: keeping a replica in step from deltas and snapshots;
 - :mod:`shared.graph.store`: atomic, checksummed snapshots on disk;
-- :mod:`shared.graph.dsg`: the Hydra / spark_dsg writer.
+- :mod:`shared.graph.dsg`: the Hydra / spark_dsg writer and reader.
 
 Nothing here imports zenoh or any service.
 """

@@ -1,6 +1,6 @@
 """Room footprints of a saved map: a 2D grid of room ids, ``MAP_DIR/rooms.npz``.
 
-The grid is fusion's free-space grid (``services.fusion.places.FreeSpaceMap``): axis 0 is
+The grid is fusion's free-space grid (``services.fusion.layers.places.FreeSpaceMap``): axis 0 is
 world x, axis 1 world y, and cell ``(i, j)`` covers ``x in [origin_x + i * res, origin_x +
 (i + 1) * res)`` and ``y in [origin_y + j * res, origin_y + (j + 1) * res)``, so its centre
 is ``origin + (i + 0.5, j + 0.5) * res``. Each cell holds the id of the room that owns it

@@ -20,6 +20,7 @@ import logging
 import os
 import re
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -85,6 +86,18 @@ def _check_domain(domain_id: int) -> int:
     return domain_id
 
 
+def _key(convention: str, topic: str, domain_id: int, prefix: str, type_chunks: Callable[[], str]) -> str:
+    """``topic``'s key: ``<domain_id>/<topic>/<type_chunks()>`` for rmw_zenoh, the topic under
+    ``prefix/`` for the bridge (``type_chunks`` is only called for rmw_zenoh, whose keys name
+    the type)."""
+    _check_convention(convention)
+    path = _topic_path(topic)
+    if convention == "bridge":
+        pre = _prefix_path(prefix)
+        return f"{pre}/{path}" if pre else path
+    return f"{_check_domain(domain_id)}/{path}/{type_chunks()}"
+
+
 def data_key(
     convention: Convention, topic: str, ros_type: str, *, domain_id: int = 0, distro: str = "jazzy", prefix: str = ""
 ) -> str:
@@ -95,12 +108,7 @@ def data_key(
     leading '/', under ``prefix/`` when ``prefix`` is set (``ros_type`` and ``distro`` unused).
     ``prefix`` belongs to the bridge only and is ignored for rmw_zenoh, whose keys have none.
     """
-    _check_convention(convention)
-    path = _topic_path(topic)
-    if convention == "bridge":
-        pre = _prefix_path(prefix)
-        return f"{pre}/{path}" if pre else path
-    return f"{_check_domain(domain_id)}/{path}/{dds_type_name(ros_type)}/{type_hash(ros_type, distro)}"
+    return _key(convention, topic, domain_id, prefix, lambda: f"{dds_type_name(ros_type)}/{type_hash(ros_type, distro)}")
 
 
 def subscribe_key(convention: Convention, topic: str, *, domain_id: int = 0, prefix: str = "") -> str:
@@ -110,12 +118,7 @@ def subscribe_key(convention: Convention, topic: str, *, domain_id: int = 0, pre
     another hash; the type is read back from each sample's key with :func:`parse_data_key`).
     bridge: the same key as :func:`data_key`.
     """
-    _check_convention(convention)
-    path = _topic_path(topic)
-    if convention == "bridge":
-        pre = _prefix_path(prefix)
-        return f"{pre}/{path}" if pre else path
-    return f"{_check_domain(domain_id)}/{path}/*/*"
+    return _key(convention, topic, domain_id, prefix, lambda: "*/*")
 
 
 @dataclass(frozen=True)

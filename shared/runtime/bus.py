@@ -20,11 +20,14 @@ import collections
 import logging
 import threading
 from collections.abc import Callable
-from typing import Any, Literal, Protocol, TypeVar
+from typing import TYPE_CHECKING, Any, Literal, Protocol, TypeVar
 
 from pydantic import BaseModel
 
 from shared.messages.base import Envelope
+
+if TYPE_CHECKING:  # the book is only a parameter's type here
+    from shared.runtime.status import StatusBook
 
 log = logging.getLogger(__name__)
 
@@ -286,3 +289,17 @@ def deliver_all(bus: Any) -> int:
     """Drain an in-process bus; a no-op for buses that deliver on their own threads."""
     drain = getattr(bus, "drain", None)
     return drain() if drain is not None else 0
+
+
+def subscribe_counted(
+    bus: Bus, book: StatusBook, input_name: str, key: str, msg_type: type[M], callback: Callable[[Envelope[M]], None],
+    **kw: Any,
+) -> Endpoint:  # fmt: skip
+    """``bus.subscribe`` (``kw``: policy, capacity, name) as the service's input ``input_name``:
+    ``book`` counts what the bus drops or refuses there and reads its queue depth."""
+    sub = bus.subscribe(
+        key, msg_type, callback,
+        on_drop=lambda: book.count(input_name, "dropped"), on_reject=lambda _why: book.count(input_name, "rejected"), **kw,
+    )  # fmt: skip
+    book.declare_input(input_name, sub.pending)
+    return sub

@@ -18,11 +18,12 @@ rejected and as an error: one bad message never stops a service.
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
 import queue
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any, ClassVar, Generic, TypeVar
 
 from pydantic import BaseModel
@@ -98,13 +99,20 @@ class Inbox:
     Without one (``trackgraph map``), the bus's delivery is the order.
     """
 
-    def __init__(self, capacity: int, *, name: str) -> None:
+    def __init__(self, capacity: int, *, name: str, start: bool = True) -> None:
+        """With ``start=False`` what is put waits until :meth:`start` (a node starts its inbox
+        once the session it feeds is made)."""
         self.name = name
         self._q: queue.Queue[tuple[str, Callable[[], None]]] = queue.Queue(maxsize=capacity)
         self._waiting: collections.Counter[str] = collections.Counter()
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        if start:
+            self.start()
+
+    def start(self) -> None:
+        """Start working off the queue."""
         self._thread.start()
 
     def put(self, input_name: str, work: Callable[[], None]) -> None:
@@ -140,7 +148,7 @@ class Inbox:
     def stop(self) -> None:
         """Stop after the item being handled; what is still queued is dropped."""
         self._stop.set()
-        if self._thread is not threading.current_thread():
+        if self._thread.ident is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout=30)
 
 
@@ -285,6 +293,16 @@ class Session:
         return waiting + (self.inbox.pending(*names) if self.inbox is not None else 0)
 
     # ---------------------------------------------------------------- running
+
+    @contextlib.contextmanager
+    def recovering(self, what: str) -> Iterator[None]:
+        """Run the block; if it raises, count an error and log it instead (the next ``what``
+        tries again: a session's periodic work never stops on one failure)."""
+        try:
+            yield
+        except Exception:  # noqa: BLE001 - counted and logged; the next call tries again
+            self.book.error()
+            log.exception("%s: %s failed", self.service, what)
 
     def tick(self, now: float) -> Any:
         """Whatever depends on time alone; the default has nothing to do."""

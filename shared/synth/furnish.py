@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -44,6 +45,12 @@ PLANS: dict[str, tuple[str, tuple[str, ...], tuple[str, ...]]] = {
 }
 """Per room style: the anchor group, pieces always tried, and the pool of optional pieces."""
 
+
+
+def _ahead(pose: Mat4, dist: float) -> Mat4:
+    """``pose`` moved ``dist`` (m) along its front, its local -y (away from the wall it backs on)."""
+    front = pose[:3, :3] @ np.array([0, -1.0, 0])
+    return translation(*(front * dist)) @ pose
 
 @dataclass
 class Placed:
@@ -191,14 +198,19 @@ class RoomFurnisher:
         a, b = (x0, x1) if side < 2 else (y0, y1)
         return a + w / 2 + 0.02, b - w / 2 - 0.02
 
-    def place_on_wall(self, template: Template, mount: str = "floor", z: float = 0.0, tries: int = 30,
-                      corner: bool = False) -> int | None:
+    def _wall_spots(self, template: Template, tries: int, corner: bool = False) -> Iterator[tuple[int, float]]:
+        """Up to ``tries`` random (wall side, position along it) where ``template`` fits, drawn
+        lazily so the caller's own draws interleave with them; ``corner``: at either end."""
         for _ in range(tries):
             side = int(self.rng.integers(4))
             a, b = self._wall_range(template, side)
             if b < a:
                 continue
-            along = (a if self.rng.random() < 0.5 else b) if corner else float(self.rng.uniform(a, b))
+            yield side, (a if self.rng.random() < 0.5 else b) if corner else float(self.rng.uniform(a, b))
+
+    def place_on_wall(self, template: Template, mount: str = "floor", z: float = 0.0, tries: int = 30,
+                      corner: bool = False) -> int | None:
+        for side, along in self._wall_spots(template, tries, corner):
             idx = self._try(template, self.wall_pose(template, side, along, z, 0.002 if mount == "wall" else 0.01), mount)
             if idx is not None:
                 return idx
@@ -222,16 +234,10 @@ class RoomFurnisher:
         sofa = FURNITURE["sofa"](self.rng).normalized()
         table = FURNITURE["coffee table"](self.rng).normalized()
         rug = FURNITURE["rug"](self.rng).normalized()
-        for _ in range(25):
-            side = int(self.rng.integers(4))
-            a, b = self._wall_range(sofa, side)
-            if b < a:
-                continue
-            pose = self.wall_pose(sofa, side, float(self.rng.uniform(a, b)))
-            front = pose[:3, :3] @ np.array([0, -1.0, 0])
+        for side, along in self._wall_spots(sofa, 25):
+            pose = self.wall_pose(sofa, side, along)
             dist = sofa.size()[1] / 2 + 0.45 + table.size()[1] / 2
-            tpose = translation(*(front * dist)) @ pose
-            rpose = translation(*(front * (dist - 0.15))) @ pose
+            tpose, rpose = _ahead(pose, dist), _ahead(pose, dist - 0.15)
             if self._group([(sofa, pose, "floor"), (table, tpose, "floor"), (rug, rpose, "flat")]) is not None:
                 # The TV goes on the opposite wall, facing the sofa.
                 stand = FURNITURE["tv stand"](self.rng).normalized()
@@ -249,12 +255,7 @@ class RoomFurnisher:
     def bed_group(self) -> None:
         bed = FURNITURE["bed"](self.rng).normalized()
         stands = [FURNITURE["nightstand"](self.rng).normalized() for _ in range(2)]
-        for _ in range(25):
-            side = int(self.rng.integers(4))
-            a, b = self._wall_range(bed, side)
-            if b < a:
-                continue
-            along = float(self.rng.uniform(a, b))
+        for side, along in self._wall_spots(bed, 25):
             pose = self.wall_pose(bed, side, along)
             members = [(bed, pose, "floor")]
             for sgn, ns in zip((-1, 1), stands, strict=True):
@@ -265,15 +266,10 @@ class RoomFurnisher:
     def desk_group(self) -> None:
         desk = FURNITURE["desk"](self.rng).normalized()
         chair = FURNITURE["office chair"](self.rng).normalized()
-        for _ in range(25):
-            side = int(self.rng.integers(4))
-            a, b = self._wall_range(desk, side)
-            if b < a:
-                continue
-            pose = self.wall_pose(desk, side, float(self.rng.uniform(a, b)))
-            front = pose[:3, :3] @ np.array([0, -1.0, 0])
+        for side, along in self._wall_spots(desk, 25):
+            pose = self.wall_pose(desk, side, along)
             dist = desk.size()[1] / 2 + 0.12 + chair.size()[1] / 2
-            cpose = translation(*(front * dist)) @ pose @ rot_z(math.pi + self.rng.uniform(-0.4, 0.4))
+            cpose = _ahead(pose, dist) @ rot_z(math.pi + self.rng.uniform(-0.4, 0.4))
             if self._group([(desk, pose, "floor"), (chair, cpose, "floor")]) is not None or self._group([(desk, pose, "floor")]) is not None:
                 return
 

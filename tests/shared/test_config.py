@@ -25,22 +25,16 @@ from shared.config import (
     save_resolved,
 )
 from shared.config.fusion import GraphConfig, ReidConfig, SegmentsConfig, TSDFConfig
-from shared.config.keyframe_vl import (
-    ClassicalSegmenterConfig,
-    ClipOnnxConfig,
-    FastSAMConfig,
-    FastSAMOnnxConfig,
-    OpenClipConfig,
+from shared.config.tracker import AssociationConfig, PropagationConfig
+from shared.perception.encoders.clip_config import ClipOnnxConfig, OpenClipConfig
+from shared.perception.encoders.simulated_config import SimulatedVLConfig
+from shared.perception.features.classical_config import ClassicalFeaturesConfig
+from shared.perception.features.dinov3_config import Dinov3Config, Dinov3OnnxConfig
+from shared.perception.segmenters.classical_config import ClassicalSegmenterConfig
+from shared.perception.segmenters.fastsam_config import FastSAMConfig, FastSAMOnnxConfig
+from shared.perception.segmenters.simulated_config import (
     SimulatedSegmenterConfig,
     SimulatedSegmenterNoise,
-    SimulatedVLConfig,
-)
-from shared.config.tracker import (
-    AssociationConfig,
-    ClassicalFeaturesConfig,
-    Dinov3Config,
-    Dinov3OnnxConfig,
-    PropagationConfig,
 )
 
 

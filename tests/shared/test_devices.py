@@ -7,8 +7,9 @@ from pydantic import ValidationError
 
 from shared.config.keyframe_vl import KeyframeVLConfig
 from shared.config.query import QueryConfig
-from shared.config.tracker import TrackerConfig, dense_features_config
+from shared.config.tracker import TrackerConfig
 from shared.devices import device_index, device_type, resolve_device, resolve_precision
+from shared.perception.features.config import dense_features_config
 
 
 @pytest.mark.parametrize("device", ["auto", "cpu", "cuda", "cuda:0", "cuda:1", "cuda:12"])

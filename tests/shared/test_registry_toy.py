@@ -19,10 +19,10 @@ from services.cli import build_parser, main
 from services.launch import plan_launch
 from services.serve import build_node
 from shared.config import load_config
-from shared.config.keyframe_vl import SEGMENTERS, SegmenterBackend
 from shared.config.launch import load_launch
 from shared.datasets import DATASETS, open_sequence
 from shared.perception import Masks
+from shared.perception.segmenters.config import SEGMENTERS, SegmenterBackend
 from shared.presets import PRESETS
 from shared.registry import SERVICES, ServiceEntry
 

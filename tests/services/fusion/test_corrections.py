@@ -10,7 +10,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from services.fusion.core import FusionCore
-from services.fusion.poses import CorrectionError
+from services.fusion.corrections.poses import CorrectionError
 from services.fusion.session import FusionSession
 from services.mapping import prepare_config
 from services.tracker.build import build_tracker
@@ -208,9 +208,9 @@ def test_the_session_holds_counts_and_journals_corrections(drifting, tmp_path):
         pub.put(_correction(drifting, cid=9, upto=10).model_copy(update={"apply_after_frame": 1000}))  # due at the map's end
         pub.put(early)
         bus.drain()
-        assert len(session.pending_corrections) == 2  # nothing fused yet
+        assert len(session.corrections.pending) == 2  # nothing fused yet
         m.feed(session, range(16))
-        assert [c.correction_id for c in session.pending_corrections] == [9] and m.core.corrections.applied == 1
+        assert [c.correction_id for c in session.corrections.pending] == [9] and m.core.corrections.applied == 1
         assert m.core.book.last_id == 1
         before = _state(m.core)
         pub.put(_correction(drifting, cid=0, upto=10))  # older than the newest
@@ -220,7 +220,7 @@ def test_the_session_holds_counts_and_journals_corrections(drifting, tmp_path):
         _assert_same_state(_state(m.core), before)
         counters = next(c for c in session.book.report().inputs if c.name == "poses_correction")
         assert counters.received == 4 and counters.rejected == 2 and counters.processed == 1
-        assert "frame 99 is unknown" in session.correction_error
+        assert "frame 99 is unknown" in session.corrections.error
         figures = session.book.report().figures["corrections"]
         assert figures["applied"] == 1 and figures["refused"] == 2 and figures["pending"] == 1
     finally:
@@ -254,12 +254,12 @@ def test_a_restarted_fusion_applies_a_pending_correction_at_the_same_frame(drift
     s.save()  # the snapshot holds the pending correction
     part.feed(s, range(10, 14))
     s._on_correction(second)  # in the journal only
-    s.journal.sync()
-    s.journal.close()  # killed: no final save
+    s.disk.journal.sync()
+    s.disk.journal.close()  # killed: no final save
     resumed = Mapper(drifting)
     resumed.tracker, resumed.next = part.tracker, 14
     s = session(resumed, tmp_path / "part", resume=True)
-    assert [c.correction_id for c in s.pending_corrections] == [1, 2] and resumed.core.last_frame_index == 13
+    assert [c.correction_id for c in s.corrections.pending] == [1, 2] and resumed.core.last_frame_index == 13
     resumed.feed(s, range(14, 30))
     s.close(save=False)
     assert resumed.core.corrections.applied == whole.core.corrections.applied == 2

@@ -10,7 +10,7 @@ import logging
 import numpy as np
 import pytest
 
-from services.fusion.journal import FILE_MAGIC, HEADER, Journal, ReplayStats, read_file
+from services.fusion.durability.journal import FILE_MAGIC, HEADER, Journal, ReplayStats, read_file
 from shared.config.fusion import JournalConfig
 from shared.graph.store import MapStore
 from shared.messages.frames import EndOfSequence, FrameAck, TrackedFrame
@@ -69,7 +69,7 @@ def test_a_torn_tail_loses_only_the_torn_record_and_says_so(tmp_path, seed, capl
     with open(path, "r+b") as f:
         f.truncate(cut)
     whole = sum(e <= cut for e in ends)
-    with caplog.at_level(logging.WARNING, logger="services.fusion.journal"):
+    with caplog.at_level(logging.WARNING, logger="services.fusion.durability.journal"):
         records, stats = j.replay(None)
     assert len(records) == whole
     torn = cut not in ends
@@ -140,7 +140,7 @@ def test_an_abandoned_session_resumes_with_everything_it_acknowledged(clock, mak
     rig.tick(11.0)  # a snapshot: the journal is cut
     store = rig.session.store
     assert store.latest_name() == "000001"
-    assert rig.session.journal.files() == ["000001"]  # what came before is in the snapshot
+    assert rig.session.disk.journal.files() == ["000001"]  # what came before is in the snapshot
     for i in range(3, 6):
         send_features(rig, i, serial=i)
         rig.frame(make_frame, i)
@@ -153,9 +153,9 @@ def test_an_abandoned_session_resumes_with_everything_it_acknowledged(clock, mak
     s = again.session
     # the snapshot's frames and what the journal held after it
     assert again.core.last_frame_index == 5 and again.core.frames == 6 and again.core.features == [3, 4, 5]
-    assert s.replayed == {"features": 3, "frame": 3, "end": 1} and s.journal_torn == 0
-    assert s.features_next == 6 and s.features_in == 6
-    assert s.end is not None and s.end.last_frame_index == 7
+    assert s.disk.replay.records == {"features": 3, "frame": 3, "end": 1} and s.disk.replay.torn == 0
+    assert s.features.next == 6 and s.features.in_map == 6
+    assert s.ending.end is not None and s.ending.end.last_frame_index == 7
     # the restart announced while nothing comes (the source may wait for fusion)
     again.tick(1.0)
     assert again.acks == [5] and again.epochs == [2] and again.through == [6]
@@ -163,7 +163,7 @@ def test_an_abandoned_session_resumes_with_everything_it_acknowledged(clock, mak
     for i in (4, 5, 6, 7):
         send_features(again, i, serial=i)
         again.frame(make_frame, i)
-    assert again.core.features == [3, 4, 5, 6, 7] and s.features_duplicate == 2 and s.duplicates == 2
+    assert again.core.features == [3, 4, 5, 6, 7] and s.features.duplicate == 2 and s.duplicates == 2
     assert s.finished.is_set() and (tmp_path / "run.json").is_file()
     d = s.delivery()
     assert d["frames_lost"] == 0 and d["frames_in_map"] == 8 and d["features_in_map"] == 8 and d["journal_replayed"]["frame"] == 3
@@ -176,30 +176,30 @@ def test_resume_without_a_snapshot_replays_from_the_empty_map(clock, make_frame,
         rig.frame(make_frame, i)
     assert rig.session.store.latest_name() is None
     again = stored_rig(clock, tmp_path, resume=True)
-    assert again.session.resumed_from is None and again.core.frames == 4 and again.session.replayed == {"frame": 4}
+    assert again.session.resumed_from is None and again.core.frames == 4 and again.session.disk.replay.records == {"frame": 4}
     again.session.close(save=False)
     # a start without --resume is a new map: the old journal goes
     fresh = stored_rig(clock, tmp_path)
-    assert fresh.session.journal.files() == ["000000"] and fresh.session.replayed == {}
-    assert list(fresh.session.journal.replay(None)[0]) == []
+    assert fresh.session.disk.journal.files() == ["000000"] and fresh.session.disk.replay.records == {}
+    assert list(fresh.session.disk.journal.replay(None)[0]) == []
 
 
 def test_a_torn_frame_at_resume_is_counted_and_sent_again(clock, make_frame, tmp_path):
     rig = stored_rig(clock, tmp_path)
     for i in range(3):
         rig.frame(make_frame, i)
-    path = rig.session.journal.path("000000")
+    path = rig.session.disk.journal.path("000000")
     with open(path, "r+b") as f:
         f.truncate(path.stat().st_size - 3)  # the last frame's record torn mid-write
     again = stored_rig(clock, tmp_path, resume=True)
-    assert again.core.frames == 2 and again.session.journal_torn == 1 and again.session.delivery()["journal_torn"] == 1
+    assert again.core.frames == 2 and again.session.disk.replay.torn == 1 and again.session.delivery()["journal_torn"] == 1
     again.frame(make_frame, 2)  # the tracker still had it: never acknowledged in the real crash
     assert again.core.frames == 3 and again.session.duplicates == 0
 
 
 def test_snapshots_prune_the_journal_and_a_full_journal_forces_one(clock, make_frame, tmp_path):
     rig = stored_rig(clock, tmp_path, config={"fusion": {"snapshot_interval_s": 10.0, "journal": {"max_bytes": 4000}}})
-    store, journal = rig.session.store, rig.session.journal
+    store, journal = rig.session.store, rig.session.disk.journal
     names = []
     for i in range(40):
         rig.frame(make_frame, i)

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.fusion.reorder import InOrder
+from services.fusion.durability.reorder import InOrder
 from shared.messages.frames import EndOfSequence, TrackedFrame
 from shared.messages.keyframes import TrackFeature, TrackFeatures
 from tests.services.fusion.test_fusion_journal import stored_rig, tracked
@@ -132,6 +132,6 @@ def test_a_restarted_fusion_waits_for_what_is_sent_again(clock, tmp_path, monkey
     again.end.put(EndOfSequence(frames_published=12, frames_dropped=0, last_frame_index=11, track_features_published=4))
     again.bus.drain()
     assert again.core.log == want[5:], "every message once, in the order sent"
-    assert s.duplicates == 1 and s.features_duplicate == 1  # 6 and 7 were in the journal
+    assert s.duplicates == 1 and s.features.duplicate == 1  # 6 and 7 were in the journal
     assert s.finished.is_set() and s.delivery()["reorder"]["skipped"] == 0
     s.close()

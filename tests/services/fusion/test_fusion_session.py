@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from services.fusion.core import CorrectionCounters, CorrectionOutcome
+from services.fusion.protocol import FusionCoreLike
 from services.fusion.session import FusionSession
 from shared.config import TrackGraphConfig
 from shared.graph.store import MapStore
@@ -25,7 +27,9 @@ class FakeSegments:
 
 
 class FakeFusion:
-    """The fusion core's protocol: a delta every ``every`` frames; its state is the frame count."""
+    """The fusion core's protocol (:class:`FusionCoreLike`): a delta every ``every`` frames;
+    its state is the frame count; corrections move nothing; it takes the room labels'
+    embeddings, as FusionCore does."""
 
     def __init__(self, every: int = 2, bad: tuple[int, ...] = ()) -> None:
         self.every, self.bad = every, set(bad)
@@ -34,6 +38,9 @@ class FakeFusion:
         self.features: list[int] = []
         self.graph = FakeGraph()
         self.segments = FakeSegments()
+        self.corrections = CorrectionCounters()
+        self.observations = None
+        self.room_vocabulary = None
         self.finished = 0
 
     def add_frame(self, tf: TrackedFrame) -> GraphDelta | None:
@@ -49,6 +56,13 @@ class FakeFusion:
 
     def add_track_features(self, msg: TrackFeatures) -> None:
         self.features.append(msg.frame_index)
+
+    def apply_correction(self, c) -> CorrectionOutcome:
+        self.corrections.unchanged += 1
+        return CorrectionOutcome(c.correction_id, "unchanged", None, 0, 0.0, 0.0, 0.0)
+
+    def set_room_vocabulary(self, labels, embeddings) -> None:
+        self.room_vocabulary = (list(labels), np.asarray(embeddings))
 
     def finish(self) -> GraphDelta:
         self.finished += 1
@@ -117,7 +131,9 @@ def test_frames_fused_duplicates_skipped_and_every_frame_acked(clock, make_frame
     assert [d.graph_seq for d in rig.deltas] == [1, 2]
     report = s.book.report()
     calm = {"held": 0, "held_most": 0, "skipped": 0, "dropped": 0, "tracker_restarts": 0}
-    assert report.figures == {"frames": 4, "frames_in_map": 4, "duplicates": 2, "reorder": calm, "graph_seq": 2, "finished": False, "room_labels": False}
+    corrections = {**CorrectionCounters().as_dict(), "pending": 0, "last_error": None}
+    assert report.figures == {"frames": 4, "frames_in_map": 4, "duplicates": 2, "reorder": calm, "graph_seq": 2, "finished": False,
+                              "room_labels": False, "corrections": corrections}  # fmt: skip
     assert report.frames_done == 4 and report.published == {"frame_ack": 6, "graph_delta": 2}
     assert rig.inputs()["tracks_frame"].processed == 6
 
@@ -214,48 +230,49 @@ def test_periodic_snapshots_and_resume(clock, make_frame, tmp_path):
     assert again.session.duplicates == 1 and again.core.frames == 4
 
 
-class NamingFusion(FakeFusion):
-    """A fake core that takes the room labels' embeddings, as FusionCore does."""
-
-    room_vocabulary = None
-
-    def set_room_vocabulary(self, labels, embeddings) -> None:
-        self.room_vocabulary = (list(labels), np.asarray(embeddings))
-
-
 def test_room_labels_are_fetched_through_vl_embed_with_backoff(clock):
     """No keyframe_vl at first: the fetch fails and is tried again after 2 s, then 4 s; once
     vl/embed is served the next due tick fetches every label, and none is asked again."""
     from shared.messages.rpc import EmbedReply, EmbedRequest
 
-    core = NamingFusion()
+    core = FakeFusion()
     rig = Rig(clock, core=core, config={"fusion": {"snapshot_interval_s": 10.0, "graph": {"room_labels": ["kitchen", "bedroom"]}}})
     asked: list[str] = []
     rig.tick(0.0)
-    assert rig.session.room_label_tries == 1 and core.room_vocabulary is None
+    assert rig.session.room_labels.tries == 1 and core.room_vocabulary is None
     rig.tick(1.0)  # within the 2 s wait: not tried
-    assert rig.session.room_label_tries == 1
+    assert rig.session.room_labels.tries == 1
 
     def embed(env):
         asked.append(env.body.text)
         return EmbedReply(embedding=np.full(3, 1 / np.sqrt(3), np.float32), model="fake")
 
     rig.tick(1.5)  # 2.5 s after the first try: the second fails too, next wait 4 s
-    assert rig.session.room_label_tries == 2
+    assert rig.session.room_labels.tries == 2
     rig.bus.serve(rig.topics.vl_embed, EmbedRequest, EmbedReply, embed)
     rig.tick(3.0)  # 5.5 s: 3 s after the second try, under the 4 s wait
-    assert rig.session.room_label_tries == 2 and asked == []
+    assert rig.session.room_labels.tries == 2 and asked == []
     rig.tick(1.5)  # 7 s: due
     assert asked == ["kitchen", "bedroom"] and core.room_vocabulary[0] == ["kitchen", "bedroom"]
     assert rig.session.book.report().figures["room_labels"] is True
     rig.tick(100.0)
-    assert asked == ["kitchen", "bedroom"] and rig.session.room_label_tries == 3
+    assert asked == ["kitchen", "bedroom"] and rig.session.room_labels.tries == 3
 
 
 def test_a_refused_room_label_leaves_the_rooms_unnamed(clock):
     from shared.messages.rpc import EmbedReply, EmbedRequest
 
-    core = NamingFusion()
+    core = FakeFusion()
     rig = Rig(clock, core=core, config={"fusion": {"snapshot_interval_s": 10.0, "graph": {"room_labels": ["kitchen"]}}})
     rig.bus.serve(rig.topics.vl_embed, EmbedRequest, EmbedReply, lambda env: EmbedReply(error="model not loaded"))
     assert rig.session.fetch_room_labels() is False and core.room_vocabulary is None
+
+
+def test_the_fusion_cores_have_what_the_session_drives():
+    """FusionCore and the tests' doubles all satisfy the protocol the session is typed with."""
+    from services.fusion.core import FusionCore
+    from tests.services.fusion.test_fusion_reorder import OrderLog
+
+    cfg = TrackGraphConfig()
+    for core in (FusionCore(cfg.fusion, device="cpu"), FakeFusion(), OrderLog()):
+        assert isinstance(core, FusionCoreLike), type(core).__name__

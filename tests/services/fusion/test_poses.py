@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from services.fusion.poses import CorrectionError, Motion, PoseBook
+from services.fusion.corrections.poses import CorrectionError, Motion, PoseBook
 from shared.messages.poses import PoseCorrection
 
 

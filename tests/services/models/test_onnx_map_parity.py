@@ -9,6 +9,7 @@ leave the segmenter the only difference between the two maps.
 
 from __future__ import annotations
 
+import importlib.util
 import json
 from pathlib import Path
 
@@ -20,7 +21,8 @@ from services.models.random_weights import random_weight_overrides
 from shared.config import TrackGraphConfig
 from shared.config.base import deep_merge
 
-pytest.importorskip("ultralytics")
+if importlib.util.find_spec("ultralytics") is None:  # imported through import_ultralytics only
+    pytest.skip("needs ultralytics", allow_module_level=True)
 pytest.importorskip("onnxruntime")
 
 pytestmark = pytest.mark.slow

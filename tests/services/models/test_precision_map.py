@@ -5,6 +5,7 @@ config's: FastSAM, OpenCLIP and DINOv3 through their torch backends."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 from pathlib import Path
 
@@ -16,7 +17,8 @@ from services.models.random_weights import random_weight_overrides
 from shared.config import TrackGraphConfig
 from shared.config.base import deep_merge
 
-pytest.importorskip("ultralytics")
+if importlib.util.find_spec("ultralytics") is None:  # imported through import_ultralytics only
+    pytest.skip("needs ultralytics", allow_module_level=True)
 pytest.importorskip("open_clip")
 pytest.importorskip("timm")
 

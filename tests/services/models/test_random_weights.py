@@ -3,6 +3,8 @@ configured backends, and the overrides point a config at them."""
 
 from __future__ import annotations
 
+import importlib.util
+
 import pytest
 
 from services.models.random_weights import random_weight_overrides
@@ -22,7 +24,8 @@ def _config(**kv) -> TrackGraphConfig:
 
 @pytest.mark.slow
 def test_overrides_point_every_model_at_loadable_random_weights(tmp_path, capsys):
-    pytest.importorskip("ultralytics")
+    if importlib.util.find_spec("ultralytics") is None:  # imported through import_ultralytics only
+        pytest.skip("needs ultralytics")
     pytest.importorskip("open_clip")
     pytest.importorskip("timm")
     from services.cli import main

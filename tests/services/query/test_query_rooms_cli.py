@@ -52,7 +52,7 @@ def save_map(root, rooms: list[RoomNode]):
 
 @pytest.fixture
 def map_dir(tmp_path, monkeypatch):
-    monkeypatch.setattr("services.keyframe_vl.encoders.make_vl_encoder", lambda *a, **kw: AxesEncoder())
+    monkeypatch.setattr("shared.perception.encoders.make_vl_encoder", lambda *a, **kw: AxesEncoder())
     # Room 0 is mostly kitchen, room 1 the bedroom; room 2 has no feature yet.
     kitchen = (0.8 * E[0] + 0.6 * E[1]).astype(np.float32)
     return save_map(tmp_path / "map", [room(0, kitchen, "kitchen"), room(1, E[1], "bedroom"), room(2, None, "")])
@@ -116,7 +116,7 @@ def test_conflicting_room_flags_exit_with_one_line(map_dir, capsys, extra, words
 
 
 def test_in_room_on_a_map_without_room_features_says_why(tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr("services.keyframe_vl.encoders.make_vl_encoder", lambda *a, **kw: AxesEncoder())
+    monkeypatch.setattr("shared.perception.encoders.make_vl_encoder", lambda *a, **kw: AxesEncoder())
     bare = save_map(tmp_path / "bare", [room(0, None, ""), room(1, None, "")])
     capsys.readouterr()  # what saving logged through an earlier command's log handler
     assert main(["query", str(bare), "sink", "--in-room", "kitchen"]) == 2

@@ -372,7 +372,7 @@ def test_a_request_waiting_for_a_worker_is_answered_at_its_deadline():
 
 
 def test_the_local_encoder_runs_on_the_query_device(monkeypatch):
-    import services.keyframe_vl.encoders as encoders
+    import shared.perception.encoders as encoders
 
     asked = []
 

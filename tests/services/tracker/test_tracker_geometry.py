@@ -11,12 +11,12 @@ from __future__ import annotations
 import numpy as np
 
 from services.tracker.core import TrackerCore
-from services.tracker.features.classical import ClassicalFeatures
 from services.tracker.footprints import mask_footprint, support
 from shared.config.tracker import TrackerConfig
 from shared.geometry import Intrinsics
 from shared.messages.frames import Frame
 from shared.perception import Masks
+from shared.perception.features.classical import ClassicalFeatures
 
 H, W = 48, 64
 K = Intrinsics(fx=100.0, fy=100.0, cx=31.5, cy=23.5, width=W, height=H)

@@ -18,11 +18,11 @@ import pytest
 from services.keyframe_vl.core import KeyframeVLCore
 from services.mapping import prepare_config
 from services.tracker.core import TrackerCore
-from services.tracker.features import make_dense_features
 from shared.config import load_config
 from shared.datasets import open_sequence
 from shared.eval.tracking import evaluate_track_maps
 from shared.messages.frames import Frame, TrackedFrame
+from shared.perception.features import make_dense_features
 
 pytestmark = pytest.mark.slow
 

@@ -27,6 +27,8 @@ class FakeTracker:
     """The tracker core's call protocol: a keyframe request every ``k`` frames, track 0 on
     every pixel once a keyframe's masks are in, a TrackFeatures after masks and features."""
 
+    takes_masks = True
+
     def __init__(self, k: int = 3, bad: tuple[int, ...] = ()) -> None:
         self.k, self.bad = k, set(bad)
         self.count = 0
@@ -274,6 +276,8 @@ def test_bad_masks_are_counted_and_the_held_keyframe_still_goes(clock, make_fram
 
 class Oracle:
     """The ground-truth tracker's protocol: frames only, no keyframe requests, no masks."""
+
+    takes_masks = False
 
     def __init__(self) -> None:
         self.frame: Frame | None = None

@@ -16,6 +16,8 @@ from shared.messages.graph import Edge, GraphSnapshot, MeshChunk, PlaceNode, Roo
 sd = pytest.importorskip("spark_dsg")
 dsg = pytest.importorskip("shared.graph.dsg")
 from shared.graph.colors import segment_colors  # noqa: E402 - after the importorskip guards
+from shared.graph.dsg.hydra import agent_places  # noqa: E402
+from shared.graph.dsg.layout import UNKNOWN_ROOM  # noqa: E402
 
 L = sd.DsgLayers
 
@@ -176,7 +178,7 @@ def test_rooms_carry_name_label_box_and_colour(saved):
     assert np.array_equal(r0.color, segment_colors(np.array([0]))[0])
     # Room 1 has no box: it comes from its places' outlines (xy) and heights +- radius (z).
     r1 = g.get_node(sd.NodeSymbol("R", 1)).attributes
-    assert space.get_category(r1.semantic_label) == dsg.UNKNOWN_ROOM
+    assert space.get_category(r1.semantic_label) == UNKNOWN_ROOM
     members = [p for p in snap.places if ROOM_OF[p.id] == 1]
     xy = np.concatenate([p.boundary for p in members])
     z_lo = min(p.position[2] - p.radius for p in members)
@@ -341,9 +343,9 @@ def test_a_chunk_of_poses_outside_every_outline_goes_to_the_nearest_place():
     far = np.array([[50.0, 50.0, 1.0, 0, 0, 0, 1], [51.0, 50.0, 1.0, 0, 0, 0, 1]])
     traj = np.concatenate([far, base.trajectory[:2]])
     snap = base.model_copy(update={"trajectory": traj, "trajectory_frames": np.arange(len(traj), dtype=np.int64)})
-    got = dsg.agent_places(snap, chunk=2)
+    got = agent_places(snap, chunk=2)
     centres = np.array([p.position for p in snap.places])
     ids = np.array([p.id for p in snap.places])
     nearest = ids[np.argmin(np.linalg.norm(centres[None] - far[:, None, :3], axis=2), axis=1)]
     assert got[:2].tolist() == nearest.tolist()
-    assert got[2:].tolist() == dsg.agent_places(base.model_copy(update={"trajectory": base.trajectory[:2], "trajectory_frames": np.arange(2, dtype=np.int64)}), chunk=2).tolist()
+    assert got[2:].tolist() == agent_places(base.model_copy(update={"trajectory": base.trajectory[:2], "trajectory_frames": np.arange(2, dtype=np.int64)}), chunk=2).tolist()

@@ -11,6 +11,7 @@ from shared.messages.graph import MeshChunk, PlaceNode, RoomNode, SegmentNode
 
 sd = pytest.importorskip("spark_dsg")
 dsg = pytest.importorskip("shared.graph.dsg")
+from shared.graph.dsg.layout import NO_LABEL  # noqa: E402 - after the importorskip guards
 
 
 def _graph(gallery_dtype=np.float32, with_mesh=True):
@@ -79,7 +80,7 @@ def test_the_file_is_a_hydra_graph(tmp_path):
     assert g.has_edge(sd.NodeSymbol("R", 1), sd.NodeSymbol("B", 0))
     assert g.has_mesh() and g.mesh.num_vertices() == 50
     labels = np.asarray(g.mesh.get_labels())
-    assert np.array_equal(labels == dsg.NO_LABEL, snap.mesh.segment_ids < 0)
+    assert np.array_equal(labels == NO_LABEL, snap.mesh.segment_ids < 0)
 
 
 def test_foreign_graph_is_refused(tmp_path):

@@ -17,7 +17,7 @@ from services.query.core import QueryEngine, QueryIndex
 from shared.codec import decode, encode
 from shared.config import QueryConfig, TransportConfig
 from shared.messages import EmbedReply, EmbedRequest, QueryReply, QueryRequest
-from shared.messages.wiredoc import ERROR_PREFIXES
+from shared.messages.wiredoc.markdown import ERROR_PREFIXES
 from shared.topics import Topics
 from shared.transport import TypedQueryable, open_session
 

@@ -28,16 +28,9 @@ from shared.messages import (
     TrackedFrame,
 )
 from shared.messages.contract import CONTRACT
-from shared.messages.wiredoc import (
-    ENCODINGS,
-    ROOT,
-    SCHEMA_DIR,
-    WIRE_MD,
-    differences,
-    generated,
-    nested_models,
-    schemas,
-)
+from shared.messages.wiredoc import ROOT, SCHEMA_DIR, WIRE_MD, differences, generated
+from shared.messages.wiredoc.models import ENCODINGS, nested_models
+from shared.messages.wiredoc.schema import schemas
 from shared.topics import Topics
 
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.fusion.poses import PoseBook
+from services.fusion.corrections.poses import PoseBook
 from shared.config.ros2 import Ros2InputConfig
 from shared.geometry import invert, pose_from_quat
 from shared.ros2.corrections import MAX_LISTED, CorrectionBuilder, read_path
