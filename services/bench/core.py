@@ -125,7 +125,9 @@ def prepare_sequence(out: Path, preset: str | None, seed: int, sequence: Path | 
             raise BenchError(f"{gt}: no such ground-truth folder")
         return Path(sequence), Path(gt), Path(sequence).name
     if preset is None:
-        raise BenchError("give --preset small|demo|revisit, or --sequence SEQ_DIR --gt GT_DIR")
+        from shared.synth.config import PRESETS
+
+        raise BenchError(f"give --preset {'|'.join(PRESETS)}, or --sequence SEQ_DIR --gt GT_DIR")
     from shared.synth import run_synth
 
     seq = out / f"sequence-{preset}-{seed}"

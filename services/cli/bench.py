@@ -14,7 +14,9 @@ def _cmd_bench_run(args: argparse.Namespace) -> int:
     from services.bench.runs import BenchError
 
     if (args.preset is None) == (args.sequence is None):
-        raise CommandError("give either --preset small|demo|revisit or --sequence SEQ_DIR --gt GT_DIR")
+        from shared.synth.config import PRESETS
+
+        raise CommandError(f"give either --preset {'|'.join(PRESETS)} or --sequence SEQ_DIR --gt GT_DIR")
     if args.sequence is not None and not args.config:
         raise CommandError("--sequence needs at least one --config FILE (simulated perception works on synthetic scenes only)")
     if args.rate_seconds is not None and args.rate_seconds <= 0:

@@ -19,7 +19,15 @@ def _cmd_synth(args: argparse.Namespace) -> int:
             validate_rate(args.drift)  # before the minutes of rendering, not after
         except ValueError as exc:
             raise CommandError(f"--drift: {exc}") from None
-    result = run_synth(args.preset, args.seed, args.out, overwrite=args.overwrite, drift=args.drift)
+    resolution = None
+    if args.resolution is not None:
+        from shared.synth.config import parse_resolution
+
+        try:
+            resolution = parse_resolution(args.resolution)
+        except ValueError as exc:
+            raise CommandError(f"--resolution: {exc}") from None
+    result = run_synth(args.preset, args.seed, args.out, overwrite=args.overwrite, drift=args.drift, resolution=resolution)
     if args.rosbag is not None:
         from shared.ros2.bagio import write_sequence_bag
 
@@ -30,6 +38,9 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     else:
         print(f"wrote {result['frames']} frames with {result['objects']} objects to {result['out']}")
         print(f"  pictures: {Path(result['out']) / 'contact_sheet.png'}, {Path(result['out']) / 'topdown.png'}")
+        if "resolution" in result:
+            width, height = result["resolution"]
+            print(f"  resolution: {width}x{height}, intrinsics in {Path(result['out']) / 'intrinsics.json'}")
         if "rosbag" in result:
             print(f"  ROS 2 bag: {result['rosbag']}")
         if "drift" in result:
@@ -52,6 +63,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     sy.add_argument("--drift", type=float, metavar="RATE",
                     help="odometry drift in metres per metre travelled (0 < RATE <= 0.5): writes traj.txt drifted, "
                          "the true poses to traj_gt.txt and the loop-closure corrections to corrections.jsonl")
+    sy.add_argument("--resolution", metavar="WxH",
+                    help="render the preset at W x H pixels (e.g. 1200x680, each from 32 to 4096): the same world and "
+                         "poses; the preset's horizontal field of view, square pixels, principal point at the centre")
     sy.add_argument("--json", action="store_true", help='print {"frames", "objects", "out"} (and "rosbag" with --rosbag, '
-                                                        '"drift" and "corrections" with --drift)')
+                                                        '"drift" and "corrections" with --drift, '
+                                                        '"resolution": [W, H] with --resolution)')
     sy.set_defaults(func=_cmd_synth)

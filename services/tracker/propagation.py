@@ -231,7 +231,9 @@ def _linear_taps(out_len: int, in_len: int, device: torch.device) -> tuple[torch
     return i0, i1, src - i0
 
 
-def upsample_labels(labels: LabelMap, height: int, width: int, chunk_rows: int = 64) -> Annotated[torch.Tensor, "(H, W) int32 slot index, 0 = no track"]:
+def upsample_labels(
+    labels: LabelMap, height: int, width: int, chunk_rows: int = 64, *, use_numba: bool = True
+) -> Annotated[torch.Tensor, "(H, W) int32 slot index, 0 = no track"]:
     """Pixel-wise argmax of the bilinearly upsampled distributions (paper: predicted masks).
 
     Returns slot indices, not track ids: 0 is "no track", s >= 1 the tracker's slot s.
@@ -242,6 +244,9 @@ def upsample_labels(labels: LabelMap, height: int, width: int, chunk_rows: int =
     chunks so full-resolution C-channel maps are never held at once. At 720 x 1280 with 40
     keyframe-like slots (one CPU thread) this took 0.2 s against 0.5 s for interpolating
     every pixel, with identical output; at 240 x 320 the two are on par.
+
+    On the CPU with numba installed, :mod:`services.tracker.upsample_numba` gives the same
+    result cell by cell over the slots that carry mass (``use_numba=False`` forces torch).
     """
     h, w, n_slots = labels.shape
     device = labels.device
@@ -249,6 +254,14 @@ def upsample_labels(labels: LabelMap, height: int, width: int, chunk_rows: int =
     x0, x1, wx = _linear_taps(width, w, device)
     r0, r1, wr = _linear_taps(height, h, device)
     peak = y.argmax(-1)  # (h, w)
+    if use_numba and device.type == "cpu":
+        from services.tracker import upsample_numba
+
+        if upsample_numba.numba is not None:
+            rows = tuple(t.numpy() for t in (r0, r1, wr, 1 - wr))
+            cols = tuple(t.numpy() for t in (x0, x1, wx, 1 - wx))
+            slots = upsample_numba.upsample_numba(y.contiguous().numpy(), peak.numpy(), rows, cols, height, width)
+            return torch.from_numpy(slots)
     out = torch.empty(height, width, dtype=torch.int32, device=device)
     for a in range(0, height, chunk_rows):
         b = min(height, a + chunk_rows)

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import numbers
+import re
 from typing import Literal
 
 from pydantic import Field, model_validator
@@ -12,17 +14,27 @@ from shared.config.base import ConfigError, StrictModel, deep_merge, validate
 RoomKind = Literal["living", "bedroom", "office", "dining"]
 
 MAX_DEPTH_UNITS = 65535
+MAX_SUITE_ROOMS = 5
+"""A suite is one row of rooms; longer rows belong in a ``building``."""
+MAX_BUILDING_ROOMS = 24
+"""Most rooms of a ``building`` (two rows of 12, a corridor of about 65 m)."""
+MIN_IMAGE_SIDE = 32
+MAX_IMAGE_SIDE = 4096
+"""Bounds of the image width and height (pixels), for the config and ``--resolution``."""
 
 
 class LayoutConfig(StrictModel):
     """Rooms, walls and doorways."""
 
-    kind: Literal["single", "suite", "revisit"] = "single"
+    kind: Literal["single", "suite", "revisit", "building"] = "single"
     """single: one furnished room with a doorway to a short hall; suite: ``rooms`` furnished
     rooms in a row, joined by doorways; revisit: two furnished rooms at the two ends of a long
-    corridor, and the camera comes back to the first one."""
-    rooms: int = Field(3, ge=1, le=5)
-    """Number of furnished rooms of a ``suite`` (the other kinds fix it)."""
+    corridor, and the camera comes back to the first one; building: ``rooms`` furnished rooms
+    on both sides of a straight corridor, each with a doorway onto it (one floor of an office
+    or apartment block), toured one after the other round the corridor."""
+    rooms: int = Field(3, ge=1, le=MAX_BUILDING_ROOMS)
+    """Number of furnished rooms of a ``suite`` (at most 5) or a ``building`` (the other kinds
+    fix it)."""
     room_width: tuple[float, float] = (4.6, 6.0)
     """Range (min, max) of a room's extent along x between wall centre lines (m)."""
     room_depth: tuple[float, float] = (4.2, 5.2)
@@ -38,13 +50,16 @@ class LayoutConfig(StrictModel):
     corridor_length: float = Field(9.0, ge=4.0, le=30.0)
     """Length of the ``revisit`` corridor between the two rooms (m)."""
     corridor_width: float = Field(1.6, ge=1.2, le=3.0)
-    """Width of the ``revisit`` corridor (m)."""
+    """Width of the corridor of a ``revisit`` or a ``building`` (m)."""
     room_kinds: list[RoomKind] | None = None
     """Furnishing style of the furnished rooms, in order; None draws them at random, without
     repeats while there are unused styles."""
 
     @model_validator(mode="after")
     def _ranges(self) -> LayoutConfig:
+        if self.kind == "suite" and self.rooms > MAX_SUITE_ROOMS:
+            raise ValueError(f"a suite has at most {MAX_SUITE_ROOMS} rooms in its row (got {self.rooms}); "
+                             "kind 'building' takes more")
         for name in ("room_width", "room_depth"):
             lo, hi = getattr(self, name)
             if not 3.5 <= lo <= hi <= 12.0:
@@ -77,12 +92,13 @@ class FurnishConfig(StrictModel):
 class CameraConfig(StrictModel):
     """The pinhole camera and its walk through the rooms."""
 
-    width: int = Field(640, ge=32, le=4096)
+    width: int = Field(640, ge=MIN_IMAGE_SIDE, le=MAX_IMAGE_SIDE)
     """Image width (pixels)."""
-    height: int = Field(480, ge=32, le=4096)
+    height: int = Field(480, ge=MIN_IMAGE_SIDE, le=MAX_IMAGE_SIDE)
     """Image height (pixels)."""
     hfov_deg: float = Field(75.0, ge=30.0, le=120.0)
-    """Horizontal field of view; fx = fy = (width / 2) / tan(hfov / 2)."""
+    """Horizontal field of view; fx = fy = (width / 2) / tan(hfov / 2) (square pixels), so the
+    vertical field follows from the aspect ratio."""
     frames: int = Field(900, ge=2, le=100000)
     """Number of frames, spaced evenly along the walk."""
     eye_height: float = Field(1.5, ge=0.3, le=2.0)
@@ -204,17 +220,63 @@ PRESETS: dict[str, dict] = {
         "camera": {"width": 640, "height": 480, "frames": 600},
         "gt": {"point_spacing": 0.02},
     },
+    # Ten furnished rooms round a corridor 25-30 m long: 165-220 m walked (seeds 0-9), so 3000
+    # frames are 5.5-7.5 cm apart (demo: 3-3.5 cm, revisit: 8-8.5 cm). Made to show how
+    # map-update cost grows with the building, against demo at the same resolution.
+    "building": {
+        "layout": {"kind": "building", "rooms": 10},
+        "camera": {"width": 640, "height": 480, "frames": 3000},
+        "gt": {"point_spacing": 0.02},
+    },
 }
 """Named starting points; ``preset_config`` layers user overrides on top."""
 
+_RESOLUTION = re.compile(r"([0-9]+)[xX]([0-9]+)")
 
-def preset_config(preset: str, overrides: dict | None = None) -> SynthConfig:
+
+def check_resolution(width: int, height: int) -> tuple[int, int]:
+    """``(width, height)`` if both are whole numbers of pixels within the image bounds, else
+    ValueError with a one-line reason."""
+    for v in (width, height):
+        if isinstance(v, bool) or not isinstance(v, numbers.Integral) or not MIN_IMAGE_SIDE <= v <= MAX_IMAGE_SIDE:
+            raise ValueError(f"expected width and height as whole numbers of pixels from {MIN_IMAGE_SIDE} to "
+                             f"{MAX_IMAGE_SIDE} (got {width!r}x{height!r})")
+    return int(width), int(height)
+
+
+def parse_resolution(text: str) -> tuple[int, int]:
+    """``"WxH"`` (e.g. ``"1200x680"``) as ``(width, height)``; ValueError with a one-line reason
+    for anything else or sizes out of bounds."""
+    match = _RESOLUTION.fullmatch(text)
+    if match is not None and MIN_IMAGE_SIDE <= int(match[1]) <= MAX_IMAGE_SIDE and MIN_IMAGE_SIDE <= int(match[2]) <= MAX_IMAGE_SIDE:
+        return int(match[1]), int(match[2])
+    raise ValueError(f"expected WxH, width and height in pixels from {MIN_IMAGE_SIDE} to {MAX_IMAGE_SIDE}, "
+                     f"e.g. 1200x680 (got {text!r})")
+
+
+def preset_config(preset: str, overrides: dict | None = None, *, resolution: tuple[int, int] | None = None) -> SynthConfig:
     """The named preset with ``overrides`` (nested, e.g. ``{"camera": {"frames": 30}}``) applied.
 
-    Raises :class:`ConfigError` naming the preset and every bad key.
+    ``resolution`` ``(width, height)`` sets the image size, nothing else: the world and the walk
+    do not depend on it, and the intrinsics follow from it with the preset's horizontal field
+    of view (see :func:`shared.synth.pipeline.intrinsics`). ``overrides`` may name
+    ``camera.width``/``camera.height`` too only with the same values.
+
+    Raises :class:`ConfigError` naming the preset and every bad key (or the bad resolution).
     """
     if preset not in PRESETS:
         raise ConfigError(f"unknown synth preset {preset!r}; choose one of {', '.join(sorted(PRESETS))}")
     data = deep_merge(PRESETS[preset], overrides or {})
     source = f"synth preset {preset!r}" + (" with overrides" if overrides else "")
+    if resolution is not None:
+        try:
+            width, height = check_resolution(*resolution)
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"{source}: resolution: {exc}") from None
+        camera = (overrides or {}).get("camera")
+        for key, value in (("width", width), ("height", height)):
+            if isinstance(camera, dict) and key in camera and camera[key] != value:
+                raise ConfigError(f"{source}: camera.{key} {camera[key]!r} disagrees with resolution {width}x{height}")
+        data = deep_merge(data, {"camera": {"width": width, "height": height}})
+        source += f" at {width}x{height}"
     return validate(SynthConfig, data, source)

@@ -85,6 +85,8 @@ class Layout:
     doors: list[Doorway]
     wall_height: float
     wall_thickness: float
+    return_to_start: bool = False
+    """The walk ends back in the first room (the ``revisit`` plan)."""
 
     def room(self, name: str) -> Room:
         return next(r for r in self.rooms if r.name == name)
@@ -154,7 +156,7 @@ def build_layout(cfg: LayoutConfig, rng: np.random.Generator) -> Layout:
                 top = min(prev.rect[3], D)
                 doors.append(Doorway("y", x, _door_center(rng, 0.0, top, cfg.door_width), cfg.door_width, cfg.door_height, (prev.name, rooms[i].name)))
             x += W
-    else:
+    elif cfg.kind == "revisit":
         ka, kb = _kinds(cfg, 2, rng)
         WA, DA = _span(rng, *w_rng), _span(rng, *d_rng)
         WB, DB = _span(rng, *w_rng), _span(rng, *d_rng)
@@ -166,7 +168,42 @@ def build_layout(cfg: LayoutConfig, rng: np.random.Generator) -> Layout:
         rooms.append(Room("room1", kb, (WA + L, yb, WA + L + WB, yb + DB)))
         doors.append(Doorway("y", WA, cy, cfg.door_width, cfg.door_height, ("room0", "corridor")))
         doors.append(Doorway("y", WA + L, cy, cfg.door_width, cfg.door_height, ("corridor", "room1")))
-    return Layout(rooms, doors, cfg.wall_height, cfg.wall_thickness)
+    elif cfg.kind == "building":
+        _building(cfg, rng, rooms, doors)
+    else:
+        raise ValueError(f"unknown layout kind {cfg.kind!r}")
+    return Layout(rooms, doors, cfg.wall_height, cfg.wall_thickness, return_to_start=cfg.kind == "revisit")
+
+
+def _building(cfg: LayoutConfig, rng: np.random.Generator, rooms: list[Room], doors: list[Doorway]) -> None:
+    """One floor: a corridor along x over y in [0, corridor_width], rooms side by side along
+    its north side (west to east) and its south side, each with a doorway onto the corridor.
+
+    Rooms are listed, and named room0, room1, ..., north row west to east and then south row
+    east to west, so floor-plan order is one loop round the corridor; the corridor comes last.
+    The corridor runs the length of the longer row."""
+    kinds = _kinds(cfg, cfg.rooms, rng)
+    cw = cfg.corridor_width
+    n_north = (cfg.rooms + 1) // 2
+    north = [(_span(rng, *cfg.room_width), _span(rng, *cfg.room_depth)) for _ in range(n_north)]
+    south = [(_span(rng, *cfg.room_width), _span(rng, *cfg.room_depth)) for _ in range(cfg.rooms - n_north)]
+    south_x = np.concatenate([[0.0], np.cumsum([w for w, _ in south])])
+    placed: list[tuple[Rect, float]] = []  # (rect, line of the corridor wall) in walking order
+    x = 0.0
+    for w, d in north:
+        placed.append(((x, cw, x + w, cw + d), cw))
+        x += w
+    for i in reversed(range(len(south))):
+        w, d = south[i]
+        x0 = float(south_x[i])
+        placed.append(((x0, -d, x0 + w, 0.0), 0.0))
+    for i, ((x0, y0, x1, y1), line) in enumerate(placed):
+        name = f"room{i}"
+        rooms.append(Room(name, kinds[i], (x0, y0, x1, y1)))
+        doors.append(Doorway("x", line, _door_center(rng, x0, x1, cfg.door_width), cfg.door_width, cfg.door_height,
+                             ("corridor", name)))
+    length = max(x, float(south_x[-1]))
+    rooms.append(Room("corridor", "corridor", (0.0, 0.0, length, cw)))
 
 
 def _wall_material(rng: np.random.Generator) -> Material:

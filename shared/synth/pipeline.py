@@ -21,7 +21,14 @@ log = logging.getLogger(__name__)
 
 
 def intrinsics(cfg: SynthConfig) -> Intrinsics:
-    """fx = fy from the horizontal field of view; principal point at the image centre."""
+    """fx = fy from the horizontal field of view; principal point at the image centre.
+
+    At another resolution (``run_synth(..., resolution=(W, H))``, ``trackgraph synth
+    --resolution WxH``) the camera keeps the preset's horizontal field of view and square
+    pixels, as a sensor read out in another mode does: at the preset's aspect ratio this is
+    :meth:`Intrinsics.scaled` exactly (every point lands at the same fraction of the image);
+    at another aspect ratio the vertical field follows (1200x680 from a 4:3 preset shows less
+    above and below), rather than fx and fy scaling apart into non-square pixels."""
     c = cfg.camera
     f = cfg.focal()
     return Intrinsics(fx=f, fy=f, cx=(c.width - 1) / 2, cy=(c.height - 1) / 2, width=c.width, height=c.height)
@@ -81,7 +88,7 @@ def generate(config: SynthConfig | str, seed: int, out_dir: str | Path, *, overw
              drift: float | None = None) -> dict:
     """Generate a synthetic RGB-D sequence with ground truth into ``out_dir``.
 
-    ``config`` is a :class:`SynthConfig` or a preset name (small, demo, revisit). The same
+    ``config`` is a :class:`SynthConfig` or a preset name (:data:`PRESETS`). The same
     config and seed give byte-identical files. Raises :class:`writer.OutputExistsError` if
     ``out_dir`` is a non-empty folder (unless ``overwrite`` and it is a previous synth output).
     ``name`` labels the scene in the ground truth (default: the preset name, or "custom").
@@ -244,15 +251,24 @@ def generate(config: SynthConfig | str, seed: int, out_dir: str | Path, *, overw
 
 
 def run_synth(preset: str, seed: int, out: Path, overrides: dict | None = None, *, overwrite: bool = False,
-              progress: bool | None = None, drift: float | None = None) -> dict:
-    """Entry point of ``trackgraph synth --preset P --seed N --out DIR [--drift RATE]``.
+              progress: bool | None = None, drift: float | None = None,
+              resolution: tuple[int, int] | None = None) -> dict:
+    """Entry point of ``trackgraph synth --preset P --seed N --out DIR [--drift RATE] [--resolution WxH]``.
 
     ``overrides`` are nested config keys layered on the preset (``{"camera": {"frames": 30}}``);
     bad keys raise :class:`shared.config.base.ConfigError` naming them. ``drift``: see
-    :func:`generate`.
+    :func:`generate`. ``resolution`` ``(width, height)`` renders the same sequence at another
+    image size: the same world (every object, its id and place), the same poses in
+    ``traj.txt`` byte for byte, intrinsics as :func:`intrinsics` says. The ground truth lists
+    the objects seen in at least one frame, so at another size (above all another aspect
+    ratio) an object seen only at an image's edge can come or go. With ``resolution`` the
+    result also has ``"resolution": [width, height]``.
     """
-    cfg = preset_config(preset, overrides)
-    return generate(cfg, seed, out, overwrite=overwrite, progress=progress, name=preset, drift=drift)
+    cfg = preset_config(preset, overrides, resolution=resolution)
+    result = generate(cfg, seed, out, overwrite=overwrite, progress=progress, name=preset, drift=drift)
+    if resolution is not None:
+        result["resolution"] = [cfg.camera.width, cfg.camera.height]
+    return result
 
 
 __all__ = ["PRESETS", "generate", "intrinsics", "run_synth"]

@@ -103,7 +103,7 @@ def plan_route(world: World, planner: PathPlanner, scale: float) -> list[tuple[f
         if not loop:
             log.warning("room %s has no walkable touring point", r.name)
     loops = [(r, loop) for r, loop in loops if loop]
-    revisit = any(r.kind == "corridor" for r in layout.rooms)
+    revisit = layout.return_to_start
     route: list[tuple[float, float]] = []
     tours = []
     for k, (room, loop) in enumerate(loops):

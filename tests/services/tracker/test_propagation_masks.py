@@ -71,6 +71,43 @@ def test_upsample_matches_torch_bilinear(h, w, H, W):
     assert (ours != expected).float().mean() < 1e-3
 
 
+def _sparse_labels(h: int, w: int, n_slots: int, gen: torch.Generator) -> torch.Tensor:
+    """Distributions as propagation leaves them: a few slots per patch, the others exactly 0,
+    plus patches with no mass at all (a softmax over nothing, zeroed) and exact ties."""
+    y = torch.softmax(3 * torch.randn(h, w, n_slots, generator=gen), -1)
+    keep = torch.rand(h, w, n_slots, generator=gen) < 0.1
+    keep[..., 0] |= torch.rand(h, w, generator=gen) < 0.5
+    y = y * keep
+    y = y / y.sum(-1, keepdim=True).clamp_min(1e-12)
+    y[0, 0] = 0.0
+    y[h // 2, w // 2] = 0.0
+    y[h - 1, w - 1, :2] = 0.5
+    y[h - 1, w - 1, 2:] = 0.0
+    return y
+
+
+@pytest.mark.parametrize(("h", "w", "H", "W", "n_slots"), [
+    (48, 84, 680, 1200, 40), (48, 64, 240, 320, 30), (4, 7, 64, 112, 6), (5, 3, 17, 23, 3), (8, 8, 4, 4, 5), (45, 79, 97, 131, 12), (1, 1, 9, 9, 2),
+])  # fmt: skip
+@pytest.mark.parametrize("kind", ["dense", "sparse"])
+def test_numba_upsample_equals_the_torch_path_bit_for_bit(h, w, H, W, n_slots, kind):
+    """The CPU kernel (cells, slots with mass only) and the torch path give the same slots,
+    ties and empty patches included."""
+    from services.tracker import upsample_numba
+
+    if upsample_numba.numba is None:
+        pytest.skip("numba is not installed")
+    gen = torch.Generator().manual_seed(h * w + n_slots)
+    if kind == "dense":
+        y = torch.softmax(3 * torch.randn(h, w, n_slots, generator=gen), -1)
+    else:
+        y = _sparse_labels(h, w, n_slots, gen)
+    fast = upsample_labels(y, H, W)
+    slow = upsample_labels(y, H, W, use_numba=False)
+    assert fast.dtype == slow.dtype == torch.int32 and fast.shape == slow.shape == (H, W)
+    assert torch.equal(fast, slow)
+
+
 def test_upsample_of_one_hot_blocks_is_exact_inside_blocks():
     slots = torch.zeros(6, 8, dtype=torch.long)
     slots[1:5, 2:6] = 3

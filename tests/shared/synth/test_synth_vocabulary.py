@@ -60,7 +60,7 @@ def test_clutter_of_hand_built_boxes():
 
 
 def test_presets_validate_and_differ():
-    assert set(PRESETS) == {"small", "demo", "revisit"}
+    assert set(PRESETS) == {"small", "demo", "revisit", "building"}
     small, demo, revisit = (preset_config(p) for p in ("small", "demo", "revisit"))
     assert (small.camera.width, small.camera.height, small.camera.frames) == (320, 240, 120)
     assert (demo.camera.width, demo.camera.height, demo.camera.frames) == (640, 480, 900)
