@@ -16,10 +16,13 @@ the robot path) with ``fusion.tsdf.voxel_size`` = ``--voxel`` (default 3 cm). Pa
 
 * ``fusion``: :class:`services.fusion.session.FusionSession` alone on an ``InProcessBus``, with
   a ``MapStore`` (the write-ahead journal on, snapshots as configured) and ``vl/embed`` served
-  for its room labels. Its input is prepared beforehand and untimed: the ground-truth tracker
-  (``tracker.mode: ground_truth``, services/tracker/oracle.py) in a ``TrackerSession`` turns the
-  frames into the TrackedFrame and TrackFeatures messages it sends, in its order. They are
-  then handed in as fast as fusion takes them, with ``tick`` every 0.2 s as its node does.
+  for its room labels. Its input is prepared beforehand and untimed: the config's tracker
+  session (classical features, keyframe masks answered at once) turns the frames into the
+  TrackedFrame and TrackFeatures messages it sends, in its order, so fusion sees what it sees
+  on the robot (a keyframe every ``tracker.keyframe_interval`` frames, propagated frames with
+  their confidence; the ground-truth tracker's frames are all keyframes, and a keyframe costs
+  fusion more). They are then handed in as fast as fusion takes them, with ``tick`` every
+  0.2 s as its node does.
   ``fusion_hz``: frames after the first / seconds from the first frame's ack to the last's.
   ``fusion_frame_ms``: a frame handed to the bus to its ack put (the ack's envelope stamp).
   ``update_lag_s``: per frame, from its ack (the frame is in the map) to the first graph delta
@@ -300,15 +303,23 @@ def _summary_ms(seconds: Sequence[float], prefix: str) -> dict[str, float | None
 # part 1: fusion's session
 
 
-def tracked_messages(cfg, frames: list) -> tuple[list, Any]:
-    """What the ground-truth tracker's session sends fusion for ``frames``: the TrackedFrame
-    and TrackFeatures messages in its order, and its ``tracks/end``."""
+def tracked_messages(cfg, frames: list, keyframe_vl) -> tuple[list, Any]:
+    """What the config's tracker session (classical features) sends fusion for ``frames``:
+    the TrackedFrame and TrackFeatures messages in its order, and its ``tracks/end``. Keyframe
+    requests are answered at once by ``keyframe_vl``'s core (``wait_for_masks``), so the
+    messages are those of a tracker whose masks come on time: a keyframe every
+    ``tracker.keyframe_interval`` frames, propagated frames with their confidence between."""
     from tqdm import tqdm
 
     from services.tracker.build import build_tracker
     from services.tracker.session import TrackerSession
     from shared.messages.frames import EndOfSequence, Frame, TrackedFrame
-    from shared.messages.keyframes import TrackFeatures
+    from shared.messages.keyframes import (
+        KeyframeMasks,
+        KeyframeRequest,
+        MaskFeatures,
+        TrackFeatures,
+    )
     from shared.runtime.bus import InProcessBus
 
     bus = InProcessBus(cfg.robot_id)
@@ -316,12 +327,20 @@ def tracked_messages(cfg, frames: list) -> tuple[list, Any]:
     t = tracker.topics
     out: list = []
     ends: list = []
+    masks_out, features_out = bus.publisher(t.keyframe_masks, KeyframeMasks), bus.publisher(t.keyframe_features, MaskFeatures)
+
+    def on_request(env) -> None:
+        msg, feats = answer(keyframe_vl, env.body)
+        masks_out.put(msg)
+        features_out.put(feats)
+
+    bus.subscribe(t.keyframe_request, KeyframeRequest, on_request, capacity=4)
     bus.subscribe(t.tracks_frame, TrackedFrame, lambda env: out.append(env.body), capacity=1)
     bus.subscribe(t.tracks_features, TrackFeatures, lambda env: out.append(env.body), capacity=1)
     bus.subscribe(t.tracks_end, EndOfSequence, lambda env: ends.append(env.body), capacity=1)
     frames_out = bus.publisher(t.frames, Frame)
     try:
-        for fr in tqdm(frames, desc="tracked frames (ground truth)", unit="frame", disable=None):
+        for fr in tqdm(frames, desc="tracked frames (classical)", unit="frame", disable=None):
             frames_out.put(fr)
             bus.drain()
         bus.publisher(t.end_of_sequence, EndOfSequence).put(
@@ -331,7 +350,7 @@ def tracked_messages(cfg, frames: list) -> tuple[list, Any]:
         tracker.close()
         bus.close()
     if not ends:
-        raise RuntimeError("the ground-truth tracker passed no tracks/end on")
+        raise RuntimeError("the tracker passed no tracks/end on")
     return out, ends[-1]
 
 
@@ -349,15 +368,15 @@ def run_fusion(seq: Path, voxel: float, n: int, work: Path) -> dict[str, Any]:
     from shared.runtime.bus import InProcessBus
 
     cfg = system_config(seq, voxel)
+    keyframe_vl = build_keyframe_vl(cfg)  # the tracker's keyframe masks; vl/embed for the room labels
     t_prep = time.monotonic()
-    messages, end = tracked_messages(system_config(seq, voxel, ["tracker.mode=ground_truth"]), load_frames(seq, n))
+    messages, end = tracked_messages(cfg, load_frames(seq, n), keyframe_vl)
     prepare_s = time.monotonic() - t_prep
 
     out = work / "fusion_map"
     shutil.rmtree(out, ignore_errors=True)
     # Envelope stamps on the monotonic clock: an ack's and a delta's stamp are when they were put.
     bus = InProcessBus(cfg.robot_id, clock=time.monotonic)
-    keyframe_vl = build_keyframe_vl(cfg)  # vl/embed for the room labels, as keyframe_vl serves it live
     session = FusionSession(bus, cfg, FusionCore(cfg.fusion, device=cfg.tracker.device), store=MapStore(out / "graph", robot_id=cfg.robot_id), out=out)
     t = session.topics
     bus.serve(t.vl_embed, EmbedRequest, EmbedReply, lambda env: keyframe_vl.embed(env.body))
@@ -416,7 +435,7 @@ def run_fusion(seq: Path, voxel: float, n: int, work: Path) -> dict[str, Any]:
     span = fed[order[-1]] - fed[order[0]]
     run = json.loads((out / "run.json").read_text())
     return {
-        "input": "ground-truth tracker (tracker.mode: ground_truth), prepared beforehand",
+        "input": "the classical tracker session, masks on time, prepared beforehand",
         "frames": len(order),
         "fusion_hz": (len(order) - 1) / span if span > 0 else None,
         **_summary_ms(per_frame[1:], "fusion_frame_ms"),

@@ -42,6 +42,18 @@ class Intrinsics(BaseModel):
     def matrix(self) -> Annotated[np.ndarray, "(3, 3) float64"]:
         return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1]], dtype=np.float64)
 
+    def strided(self, step: int) -> Intrinsics:
+        """The camera of ``image[::step, ::step]``: its pixel (u, v) is this camera's pixel
+        (step u, step v)."""
+        return Intrinsics(
+            fx=self.fx / step,
+            fy=self.fy / step,
+            cx=self.cx / step,
+            cy=self.cy / step,
+            width=-(-self.width // step),
+            height=-(-self.height // step),
+        )
+
     def scaled(self, width: int, height: int) -> Intrinsics:
         """The same camera at another resolution."""
         sx, sy = width / self.width, height / self.height
@@ -53,6 +65,14 @@ class Intrinsics(BaseModel):
             width=width,
             height=height,
         )
+
+
+def pixel_stride(stride: int | str, width: int) -> int:
+    """A ``pixel_stride`` setting (a number, or ``auto``: about 640 pixels across) for an
+    image ``width`` pixels wide."""
+    if stride == "auto":
+        return max(1, round(width / 640))
+    return int(stride)
 
 
 def is_rigid(T: Pose, tol: float = 1e-3) -> bool:

@@ -31,10 +31,10 @@ from services.fusion.volume.hypotheses import confidence
 from services.fusion.volume.move import warm_up
 from services.fusion.volume.tsdf import HypothesisTSDF
 from shared.config.fusion import FusionConfig
-from shared.geometry import backproject, pose_from_row, pose_row
+from shared.geometry import Intrinsics, backproject, pixel_stride, pose_from_row, pose_row
 from shared.graph.roomgrid import RoomGrid
 from shared.graph.scene import SceneGraph
-from shared.messages.frames import TrackedFrame
+from shared.messages.frames import Frame, TrackedFrame
 from shared.messages.graph import GraphDelta, GraphSnapshot, MeshChunk, RoomNode, SegmentNode
 from shared.messages.keyframes import TrackFeatures
 from shared.messages.poses import PoseCorrection
@@ -142,13 +142,25 @@ class FusionCore:
             ids = np.where(tf.confidence >= round(255 * tsdf.min_label_confidence), ids, -1)
         return ids, gamma
 
+    def _fused_pixels(
+        self, fr: Frame, ids: Annotated[np.ndarray, "(H, W) int32"]
+    ) -> tuple[Annotated[np.ndarray, "(h, w) float32 m"], Annotated[np.ndarray, "(h, w, 3) uint8"], Intrinsics, Annotated[np.ndarray, "(h, w) int32"]]:
+        """Depth, colour, intrinsics and vote labels as they are fused: every
+        ``fusion.tsdf.pixel_stride``-th pixel of every such row."""
+        step = pixel_stride(self.cfg.tsdf.pixel_stride, fr.intrinsics.width)
+        if step == 1:
+            return fr.depth_m(), fr.rgb, fr.intrinsics, ids
+        depth = fr.depth[::step, ::step].astype(np.float32) / np.float32(fr.depth_scale)
+        return depth, np.ascontiguousarray(fr.rgb[::step, ::step]), fr.intrinsics.strided(step), np.ascontiguousarray(ids[::step, ::step])
+
     def add_frame(self, tf: TrackedFrame) -> GraphDelta | None:
         """Fuse one tracked frame; every N frames also update the graph and return its delta."""
         fr = tf.frame
         ids, gamma = self._votes(tf)
         # the pose the frame came with, as the newest pose correction places it
         T = self.book.add(int(fr.frame_index), fr.T_world_cam)
-        stats = self.tsdf.integrate(fr.depth_m(), fr.rgb, fr.intrinsics, T, ids, gamma, frame_index=int(fr.frame_index))
+        depth, rgb, K, fused_ids = self._fused_pixels(fr, ids)
+        stats = self.tsdf.integrate(depth, rgb, K, T, fused_ids, gamma, frame_index=int(fr.frame_index))
         if self.observations is not None:
             self.observations.append(tf)
         for tid, w in stats.displaced.items():
@@ -394,7 +406,8 @@ class FusionCore:
             fr = tf.frame
             ids, gamma = self._votes(tf)
             T = self.book.estimate(int(fr.frame_index))
-            fresh.integrate(fr.depth_m(), fr.rgb, fr.intrinsics, T, ids, gamma, frame_index=int(fr.frame_index))
+            depth, rgb, K, fused_ids = self._fused_pixels(fr, ids)
+            fresh.integrate(depth, rgb, K, T, fused_ids, gamma, frame_index=int(fr.frame_index))
             fresh.update_window(T[:3, 3])
         self.tsdf = fresh
         t_fuse = time.perf_counter() - t0

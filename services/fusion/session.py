@@ -8,8 +8,9 @@ The session wires; the work is done by its parts. The map on disk
 (:class:`~services.fusion.durability.keeper.MapKeeper`, with a
 :class:`~shared.graph.store.MapStore` and a map folder): resume from the newest snapshot, the
 write-ahead :class:`~services.fusion.durability.journal.Journal` (every frame, feature
-message, correction and end of sequence accepted goes there before it is applied and
-acknowledged, and a resume replays it through the same handlers, so a killed fusion comes
+message, correction and end of sequence accepted goes there before it is acknowledged, a
+frame's record written while the frame is fused, and a resume replays it through the same
+handlers, so a killed fusion comes
 back with everything it acknowledged), a snapshot every ``fusion.snapshot_interval_s``, and
 at the end the whole map with the mesh, the OpenLex3D files and ``run.json``. Without a store
 (``trackgraph map``) the caller writes the map. Pose corrections wait in
@@ -188,8 +189,8 @@ class FusionSession(Session):
             else:
                 if self._first_frame_at is None:
                     self._first_frame_at = t0
-                self.disk.append("frame", tf)
-                delta = self.core.add_frame(tf)
+                with self.disk.writing("frame", tf):  # journaled while fused, on disk before the ack
+                    delta = self.core.add_frame(tf)
                 self.in_order.applied(tf.order)
                 self.frames += 1
                 self._last_frame_at = self.clock()

@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import Field, model_validator
 
@@ -41,6 +41,13 @@ class TSDFConfig(StrictModel):
     mesh_min_weight: float = Field(1.0, ge=0)
     """Marching cubes uses voxels whose TSDF weight exceeds this: 1 keeps surfaces seen in at
     least two frames, which drops single-frame depth noise."""
+    pixel_stride: Annotated[int, Field(ge=1, le=8)] | Literal["auto"] = 1
+    """Not in the paper: fuse (integrate, and vote per eq. 5) every Nth pixel of every Nth row,
+    with the intrinsics to match. At 3 cm a voxel 2 m away spans about 12 pixels of a 1200
+    pixel wide image (fx 782), and the vote is a share of each voxel's pixels (eq. 5 as
+    ``services/fusion/volume/hypotheses.py`` applies it), so the map hardly changes while the
+    per-pixel work drops by N squared. ``auto``: about 640 pixels across, ``max(1,
+    round(width / 640))`` (1 up to 800 pixels wide, 2 at Replica's 1200x680)."""
     active_window_m: float = Field(8.0, gt=0)
     """Radius of the active window around the pose (III-A); blocks outside are archived."""
     restore_archived: bool = False

@@ -248,6 +248,26 @@ def test_scaled_halves_with_pixel_centre_convention() -> None:
     assert K.scaled(640, 480) == K
 
 
+def test_strided_camera_sees_every_point_at_its_strided_pixel() -> None:
+    """``image[::s, ::s]``'s camera: a point at pixel (s u, s v) of the full image is at
+    (u, v) of the strided one, for odd sizes too (the last row and column are kept)."""
+    from shared.geometry import pixel_stride
+
+    k = Intrinsics(fx=782.0, fy=781.0, cx=599.5, cy=339.5, width=1201, height=681)
+    rng = np.random.default_rng(0)
+    for step in (1, 2, 3):
+        ks = k.strided(step)
+        assert (ks.width, ks.height) == (len(range(0, 1201, step)), len(range(0, 681, step)))
+        u, v = rng.integers(0, ks.width, 50), rng.integers(0, ks.height, 50)
+        z = rng.uniform(0.5, 5.0, 50)
+        x, y = (step * u - k.cx) / k.fx * z, (step * v - k.cy) / k.fy * z  # the full camera's point
+        np.testing.assert_allclose(ks.fx * x / z + ks.cx, u, atol=1e-9)
+        np.testing.assert_allclose(ks.fy * y / z + ks.cy, v, atol=1e-9)
+    assert k.strided(1) == k
+    assert [pixel_stride("auto", w) for w in (320, 640, 800, 1200, 1280, 1920, 3840)] == [1, 1, 1, 2, 2, 3, 6]
+    assert pixel_stride(3, 320) == 3
+
+
 def test_scaled_anisotropic_and_back() -> None:
     k = Intrinsics(fx=600.0, fy=610.0, cx=300.25, cy=250.75, width=640, height=480)
     s = k.scaled(1280, 360)

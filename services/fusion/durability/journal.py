@@ -22,9 +22,14 @@ so appends go on after it. A damaged record inside a file (a bad disk block) is 
 same way when its length is still readable, and the reader looks for the next record's
 magic otherwise.
 
-Each record reaches the operating system (``os.write``) before :meth:`Journal.append`
-returns, so a killed process loses none; ``fsync`` follows at most
-``fusion.journal.fsync_interval_s`` later, against a power cut.
+Records are encoded, compressed and written on the journal's own writer thread, one at a
+time in the order they were handed in (:meth:`Journal.submit`): fusion's frame path
+integrates a frame while its record is compressed (zstd and the codec's zlib release the
+GIL), and waits for the record only before the frame's ack. A record reaches the operating
+system (``os.write``) before its future resolves and before :meth:`Journal.append` returns,
+so a killed process loses nothing it acknowledged; ``fsync`` follows at most
+``fusion.journal.fsync_interval_s`` later, against a power cut. Every other operation on the
+file (sync, cut, open, close) runs on the same thread, after the records before it.
 """
 
 from __future__ import annotations
@@ -36,6 +41,7 @@ import struct
 import time
 import zlib
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -234,6 +240,17 @@ class Journal:
         self.appended_bytes = 0
         self.append_s = 0.0
         """Seconds spent encoding and writing records (the journal's cost, for the status and benchmarks)."""
+        self._writer: ThreadPoolExecutor | None = None
+        """One thread: records and file operations in the order they were handed in."""
+
+    def _call(self, fn: Callable[..., object], *args: object) -> Future:
+        if self._writer is None:
+            self._writer = ThreadPoolExecutor(1, thread_name_prefix="journal")
+        return self._writer.submit(fn, *args)
+
+    def _wait(self, fn: Callable[..., object], *args: object) -> object:
+        """``fn(*args)`` on the writer thread, after everything handed in before it."""
+        return self._call(fn, *args).result()
 
     # ---------------------------------------------------------------- files
 
@@ -265,7 +282,10 @@ class Journal:
 
     def open(self, name: str) -> None:
         """Append to file ``name`` from now on (created with its magic if new or empty)."""
-        self.close()
+        self._wait(self._open, name)
+
+    def _open(self, name: str) -> None:
+        self._close()
         self.root.mkdir(parents=True, exist_ok=True)
         path = self.path(name)
         try:
@@ -282,13 +302,25 @@ class Journal:
 
     def reset(self) -> None:
         """A fresh map: the old journal files go, and appends start at :data:`FIRST`."""
+        self._wait(self._reset)
+
+    def _reset(self) -> None:
         for name in self.files():
             self.path(name).unlink(missing_ok=True)
-        self.open(FIRST)
+        self._open(FIRST)
 
     def append(self, kind: str, body: BaseModel) -> int:
         """Write one record; returns its size. The bytes are with the operating system when
         this returns (a killed process loses nothing); fsync when the interval is up."""
+        return self.submit(kind, body).result()
+
+    def submit(self, kind: str, body: BaseModel) -> Future:
+        """Write one record on the writer thread, after those handed in before it. The
+        future's result is the record's size once its bytes are with the operating system, or
+        the :class:`JournalError` that stopped them. ``body`` must not change until then."""
+        return self._call(self._append, kind, body)
+
+    def _append(self, kind: str, body: BaseModel) -> int:
         if self._fd is None:
             raise JournalError(f"journal {self.root}: not open")
         t0 = time.perf_counter()
@@ -308,12 +340,15 @@ class Journal:
         self.appended_bytes += len(rec)
         now = self.clock()
         if now - self._last_sync >= self.cfg.fsync_interval_s:
-            self.sync(now)
+            self._sync(now)
         self.append_s += time.perf_counter() - t0
         return len(rec)
 
     def sync(self, now: float | None = None) -> None:
         """fsync what was appended (called by ``append`` and the session's tick)."""
+        self._wait(self._sync, now)
+
+    def _sync(self, now: float | None = None) -> None:
         if self._fd is not None and self._dirty:
             try:
                 os.fsync(self._fd)
@@ -331,16 +366,29 @@ class Journal:
     def cut(self, snapshot: str, keep_from: str | None) -> None:
         """Snapshot ``snapshot`` holds everything appended so far: later records go to its own
         file. Files older than ``keep_from`` (the oldest snapshot the store keeps) are deleted."""
-        self.sync()
-        self.open(snapshot)
+        self._wait(self._cut, snapshot, keep_from)
+
+    def _cut(self, snapshot: str, keep_from: str | None) -> None:
+        self._sync()
+        self._open(snapshot)
         if keep_from is not None:
             for name in self.files():
                 if int(name) < int(keep_from) and name != self.name:
                     self.path(name).unlink(missing_ok=True)
 
     def close(self) -> None:
+        """Write what was handed in, fsync, close the file and stop the writer thread."""
+        if self._writer is None:
+            return
+        try:
+            self._wait(self._close)
+        finally:
+            self._writer.shutdown(wait=True)
+            self._writer = None
+
+    def _close(self) -> None:
         if self._fd is not None:
-            self.sync()
+            self._sync()
             os.close(self._fd)
             self._fd = None
 

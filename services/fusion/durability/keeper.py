@@ -1,5 +1,5 @@
 """A fusion session's map on disk: resume from the newest snapshot, the write-ahead journal
-(every accepted message appended before it is applied, replayed after the snapshot on
+(every accepted message written before it is acknowledged, replayed after the snapshot on
 resume), a snapshot every ``fusion.snapshot_interval_s`` (or when the journal grows past
 ``fusion.journal.max_bytes``), and at the end the whole map with ``run.json``.
 
@@ -12,7 +12,9 @@ from __future__ import annotations
 import json
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
@@ -136,10 +138,33 @@ class MapKeeper:
     def append(self, kind: str, body: BaseModel) -> None:
         """Write-ahead: on disk (with the OS) before it is applied and acknowledged. Not
         while replaying what the journal already holds."""
+        self.finish(self.begin(kind, body))
+
+    def begin(self, kind: str, body: BaseModel) -> Future | None:
+        """Write-ahead, started: the record is encoded and written on the journal's thread
+        while the caller applies ``body`` (which must not change meanwhile); :meth:`finish`
+        waits for it, before the ack. None when nothing is journaled (no journal, a replay)."""
         if self.journal is None or self.replaying:
+            return None
+        return self.journal.submit(kind, body)
+
+    @contextmanager
+    def writing(self, kind: str, body: BaseModel) -> Iterator[None]:
+        """Write-ahead for ``body`` while the block applies it: the record is compressed and
+        written on the journal's thread meanwhile, and with the OS when the block ends, before
+        the caller acknowledges it (a fusion killed before then is sent the message again)."""
+        pending = self.begin(kind, body)
+        try:
+            yield
+        finally:
+            self.finish(pending)
+
+    def finish(self, pending: Future | None) -> None:
+        """Wait for a record :meth:`begin` started to be with the operating system."""
+        if pending is None:
             return
         try:
-            self.journal.append(kind, body)
+            pending.result()
         except JournalError as exc:
             # the map goes on; what comes now is only as safe as the next snapshot
             self.book.error()

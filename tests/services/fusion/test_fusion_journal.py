@@ -1,11 +1,15 @@
 """fusion's write-ahead journal: records read back as written, a torn tail (a crash mid-write,
 cut at seeded random bytes) loses only the torn record and says so, damage inside a file is
-skipped, snapshots cut and prune it, and a fusion session abandoned without closing (as a
-SIGKILL leaves it) resumes with every frame and feature message it acknowledged."""
+skipped, snapshots cut and prune it, a fusion session abandoned without closing (as a
+SIGKILL leaves it) resumes with every frame and feature message it acknowledged, and a
+frame's record is written beside its fusion (the writer thread) yet on disk before its ack."""
 
 from __future__ import annotations
 
 import logging
+import os
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -210,3 +214,72 @@ def test_snapshots_prune_the_journal_and_a_full_journal_forces_one(clock, make_f
     again = stored_rig(clock, tmp_path, core=FakeFusion(), resume=True)
     assert again.core.last_frame_index == 39 and again.core.frames == 40
     again.session.close(save=False)
+
+
+def test_records_keep_their_order_from_the_writer_thread(tmp_path):
+    """Records handed in without waiting land in the order they were handed in."""
+    j = Journal(tmp_path / "journal", JournalConfig())
+    j.reset()
+    pending = [j.submit("frame", tracked(i)) if i % 3 else j.submit("features", features(i, serial=i)) for i in range(9)]
+    sizes = [p.result(timeout=30) for p in pending]
+    j.close()
+    records, stats = j.replay(None)
+    assert stats.torn == 0 and all(s > 0 for s in sizes)
+    assert [(r.kind, r.body.frame.frame_index if r.kind == "frame" else r.body.frame_index) for r in records] == [
+        ("frame" if i % 3 else "features", i) for i in range(9)
+    ]
+
+
+def test_a_failed_write_reaches_the_caller_of_its_record(tmp_path):
+    from services.fusion.durability.journal import JournalError
+
+    j = Journal(tmp_path / "journal", JournalConfig())
+    j.reset()
+    j._wait(lambda: os.close(j._fd))  # the file gone from under it (as a disk error leaves it)
+    with pytest.raises(JournalError, match="write failed"):
+        j.submit("frame", tracked(0)).result(timeout=30)
+    j._fd = None
+    j.close()
+
+
+class _SaysWhenFusing(FakeFusion):
+    """A core that says when it fuses a frame."""
+
+    def __init__(self, fusing: threading.Event) -> None:
+        super().__init__(every=100)
+        self.fusing = fusing
+
+    def add_frame(self, tf: TrackedFrame):
+        self.fusing.set()
+        return super().add_frame(tf)
+
+
+def test_a_frame_is_journaled_while_it_is_fused_and_on_disk_before_its_ack(clock, make_frame, tmp_path, monkeypatch):
+    from services.fusion.durability import journal as journal_module
+
+    fusing = threading.Event()
+    overlapped: list[bool] = []
+    encode = journal_module.encode_record
+
+    def encode_beside_fusion(kind, body, level):
+        # A journal written on the frame path, before the frame is applied, waits here in vain.
+        overlapped.append(fusing.wait(2))
+        time.sleep(0.05)  # still compressing when the frame is fused: the ack must wait for it
+        return encode(kind, body, level)
+
+    monkeypatch.setattr(journal_module, "encode_record", encode_beside_fusion)
+    rig = stored_rig(clock, tmp_path, core=_SaysWhenFusing(fusing))
+    on_disk_at_ack: list[int] = []
+
+    def at_ack(env) -> None:
+        records, _ = Journal(tmp_path / "graph" / "journal", JournalConfig()).replay(None)
+        on_disk_at_ack.append(sum(r.kind == "frame" and r.body.frame.frame_index == env.body.frame_index for r in records))
+
+    rig.bus.subscribe(rig.topics.frame_ack, FrameAck, at_ack)
+    for i in range(3):
+        fusing.clear()
+        rig.frame(make_frame, i)
+    assert rig.acks == [0, 1, 2] and rig.core.frames == 3
+    assert overlapped == [True, True, True]
+    assert on_disk_at_ack == [1, 1, 1]  # each frame's record was in the file when its ack went out
+    rig.session.close(save=False)
