@@ -33,6 +33,7 @@ from typing import Annotated, Any
 import numpy as np
 
 from services.fusion.types import HypothesisMesh
+from services.fusion.volume.anchors import anchor_in_place, anchor_rule
 from services.fusion.volume.grid import BlockGrid, resolve_device
 from services.fusion.volume.hypotheses import (
     FrameGeometry,
@@ -243,14 +244,14 @@ class HypothesisTSDF(BlockGrid):
         """Each voxel the frame updated is anchored to the weighted mean of the frames fused
         into it (rounded): a surface averaged over frames with different drift sits where their
         mean puts it, so a correction moves it best by the mean frame's motion, not the last
-        one's (:mod:`services.fusion.volume.move`)."""
+        one's (:mod:`services.fusion.volume.move`, :mod:`services.fusion.volume.anchors`)."""
         w_arr, a_arr = attribute_array(self.vbg, "weight"), attribute_array(self.vbg, "anchor")
+        if anchor_in_place(w_arr, a_arr, bufs, before, frame):
+            return
         idx = index_like(w_arr, bufs)
         after = to_host(w_arr[idx]).reshape(len(bufs), -1).astype(np.float64)
         old = to_host(a_arr[idx]).reshape(len(bufs), -1).astype(np.float64)
-        added = after - before
-        mean = np.where(before > 0, old + (frame - old) * added / np.maximum(after, 1e-9), frame)
-        anchors = np.where(added > 0, np.floor(mean + 0.5), np.where(before > 0, old, frame)).astype(np.int32)
+        anchors = anchor_rule(after, old, before, frame)
         a_arr[idx] = like(a_arr, anchors.reshape(len(bufs), self.res, self.res, self.res, 1))
 
     def _frame_blocks(self, dimg: Any, intr: Any, extr: Any, depth: np.ndarray) -> Any:
