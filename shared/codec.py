@@ -10,6 +10,10 @@ and each numpy array inside the body is a map with the reserved key ``"__nd__"``
     {"__nd__": "raw" | "zlib" | "jpeg" | "png" | "zstd2d" | "bits" | "rle",
      "dtype": "uint8", "shape": [480, 640, 3], "data": b"..."}
 
+A map of the message's own (a status's ``figures``, say) keeps any string key: a key that is
+``"__nd__"`` or starts with ``"__nd_esc__"`` travels with one ``"__nd_esc__"`` in front of it,
+and decoding takes one off, so no data map is mistaken for an array.
+
 Decoding never trusts a declared size: the dtype must be whitelisted, the shape's byte count
 must fit the limits before anything is allocated, and raw data must match it exactly.
 Every failure, whatever its cause, raises :class:`CodecError`.
@@ -37,6 +41,18 @@ from shared.config.transport import CodecConfig
 M = TypeVar("M", bound=BaseModel)
 
 ND = "__nd__"
+ESC = "__nd_esc__"
+"""Put in front of a data map's key that is :data:`ND` or starts with it, and taken off."""
+
+
+def _escape(key: Any) -> Any:
+    return ESC + key if isinstance(key, str) and (key == ND or key.startswith(ESC)) else key
+
+
+def _unescape(obj: dict) -> dict:
+    if not any(isinstance(k, str) and k.startswith(ESC) for k in obj):
+        return obj
+    return {(k[len(ESC):] if isinstance(k, str) and k.startswith(ESC) else k): v for k, v in obj.items()}
 
 
 class CodecError(ValueError):
@@ -241,7 +257,7 @@ def _to_wire(value: Any, spec: ArraySpec | None, cfg: CodecConfig) -> Any:
     if isinstance(value, (list, tuple)):
         return [_to_wire(v, None, cfg) for v in value]
     if isinstance(value, dict):
-        return {k: _to_wire(v, None, cfg) for k, v in value.items()}
+        return {_escape(k): _to_wire(v, None, cfg) for k, v in value.items()}
     if isinstance(value, np.generic):
         return value.item()
     return value
@@ -290,7 +306,7 @@ def decode_raw(payload: bytes, cfg: CodecConfig | None = None) -> dict:
             if total[0] > cfg.total_array_limit:
                 raise CodecError(f"arrays decode to over max_total_array_bytes {cfg.total_array_limit}")
             return arr
-        return obj
+        return _unescape(obj)
 
     try:
         env = msgpack.unpackb(

@@ -596,3 +596,17 @@ def test_zstd2d_depth_is_bit_exact(shape):
         assert back.dtype == np.uint16 and back.shape == shape and np.array_equal(back, depth)
     # a receiver set to another depth encoding still decodes it
     assert np.array_equal(_decode_array(_encode_array(depth, spec, cfg), CodecConfig(depth="png")), depth)
+
+
+def test_a_data_map_may_use_the_array_marker_as_a_key() -> None:
+    """Found by the round trip above (a status figure named ``__nd__`` decoded as a broken
+    array): a map of the message's own keeps every string key, the marker and the escape
+    prefix included, and still travels as a plain map."""
+    from shared.messages.status import ServiceStatus
+
+    figures = {"__nd__": None, "__nd_esc__": 1, "__nd_esc____nd__": [2, 3], "__nd_x": {"__nd__": "raw"}, "frames": 4}
+    status = ServiceStatus(service="fusion", pid=1, state="running", uptime_s=0.0, inputs=[], published={}, rate_hz=0.0, errors=0, figures=figures, stale_s=0.0)
+    payload = encode(status, robot_id="robot0", seq=1, stamp=2.0)
+    wire = msgpack.unpackb(payload)["body"]["figures"]
+    assert "__nd__" not in wire and wire["__nd_esc____nd__"] is None and wire["__nd_esc____nd_esc__"] == 1
+    assert decode(payload, ServiceStatus).body.figures == figures

@@ -131,6 +131,10 @@ def _arrays_section() -> list[str]:
         "",
         *_table(["`__nd__`", "dtype, shape", "how to decode `data`"], rows),
         "",
+        "Any other map in a body (a status's `figures`, say) is data and keeps every string key: a",
+        "sender puts `__nd_esc__` in front of a key that is `__nd__` or starts with `__nd_esc__`, and a",
+        "receiver takes one `__nd_esc__` off every key that starts with it, so no data map reads as an array.",
+        "",
     ]
 
 
