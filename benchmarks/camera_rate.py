@@ -62,7 +62,6 @@ import json
 import logging
 import math
 import os
-import platform
 import shutil
 import signal
 import subprocess
@@ -193,7 +192,7 @@ def table(res: dict[str, Any]) -> str:
     lines = [
         f"camera_rate: {res['preset']} walk at {w}x{h}, voxel {res['voxel_size'] * 100:g} cm, {res['frames']} frames, "
         f"classical config{' (quick)' if res.get('quick') else ''}; commit {res.get('commit')}; "
-        f"{m.get('cpu_count')} CPUs ({m.get('cpu')}), load {m.get('loadavg')}",
+        f"{m.get('cpus')} CPUs ({m.get('cpu')}), load {m.get('loadavg')}",
         "",
         "| part | figure | value | target |",
         "|---|---|---|---|",
@@ -237,28 +236,12 @@ def table(res: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def git_commit(root: Path = ROOT) -> str | None:
-    """``git rev-parse --short HEAD``, with ``+dirty`` when the tree has changes; None outside git."""
-    try:
-        sha = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain"], cwd=root, capture_output=True, text=True, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return None
-    return sha + ("+dirty" if dirty else "")
-
-
 def machine() -> dict[str, Any]:
-    """CPU count and model, platform, Python and the load when the run started."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {"cpu_count": os.cpu_count(), "cpu": cpu, "platform": platform.platform(), "python": platform.python_version(),
-            "loadavg": [round(x, 2) for x in os.getloadavg()]}  # fmt: skip
+    """The bench's machine record (OS, CPU model and count, Python, GPUs) and the load when
+    the run started: rates on a shared machine are read against it."""
+    from services.bench.runs import machine as bench_machine
+
+    return {**bench_machine(), "loadavg": [round(x, 2) for x in os.getloadavg()]}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -682,6 +665,8 @@ def run_live(seq: Path, voxel: float, frames: int, rates: Sequence[float], work:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    from services.bench.runs import git_commit
+
     work = args.out / "camera_rate"
     res: dict[str, Any] = {
         "benchmark": "camera_rate",
@@ -694,7 +679,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "config": str(CONFIG.relative_to(ROOT)),
         "quick": args.quick,
         "parts": list(args.parts),
-        "commit": git_commit(),
+        "commit": git_commit(),  # the bench's: "-dirty" with uncommitted changes
         "machine": machine(),
         "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
     }

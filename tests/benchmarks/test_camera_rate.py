@@ -61,8 +61,8 @@ def test_parts_and_rates_parsers():
 
 
 def _result(**parts) -> dict:
-    return {"resolution": [1200, 680], "voxel_size": 0.03, "frames": 240, "preset": "demo", "quick": False, "commit": "abc1234+dirty",
-            "machine": {"cpu_count": 2, "cpu": "some CPU", "loadavg": [0.1, 0.1, 0.1]}, "parts": list(parts), **parts}  # fmt: skip
+    return {"resolution": [1200, 680], "voxel_size": 0.03, "frames": 240, "preset": "demo", "quick": False, "commit": "abc1234-dirty",
+            "machine": {"cpus": 2, "cpu": "some CPU", "loadavg": [0.1, 0.1, 0.1]}, "parts": list(parts), **parts}  # fmt: skip
 
 
 def test_table_shows_each_figure_against_its_target():
@@ -77,7 +77,7 @@ def test_table_shows_each_figure_against_its_target():
     )  # fmt: skip
     text = camera_rate.table(res)
     lines = text.splitlines()
-    assert "1200x680" in lines[0] and "abc1234+dirty" in lines[0]
+    assert "1200x680" in lines[0] and "abc1234-dirty" in lines[0]
 
     def row(start: str) -> str:
         found = [ln for ln in lines if ln.startswith(start)]
@@ -143,7 +143,7 @@ def test_tiny_run_of_fusion_and_tracker_writes_the_json(tmp_path):
         assert key in res, key
     assert res["resolution"] == [160, 120] and res["voxel_size"] == 0.03 and res["frames"] == 10 and res["quick"] is True
     assert "map" not in res and "live" not in res
-    assert res["commit"] and {"cpu_count", "cpu", "platform"} <= set(res["machine"])
+    assert res["commit"] and {"cpus", "cpu", "platform", "loadavg"} <= set(res["machine"])
 
     fusion, tracker = res["fusion"], res["tracker"]
     assert "error" not in fusion and "error" not in tracker, (fusion, tracker)

@@ -21,6 +21,7 @@ from shared.synth.drift import (
     position_errors,
 )
 from shared.synth.trajectory import look_pose
+from tests.shared.synth.conftest import shrink_synth
 
 TINY = {"camera": {"frames": 6, "width": 64, "height": 48}, "gt": {"point_spacing": 0.05}}
 
@@ -260,14 +261,7 @@ def test_run_synth_with_drift(tmp_path):
 @pytest.fixture
 def tiny_synth(monkeypatch):
     """``trackgraph synth`` renders a tiny sequence instead of the whole preset."""
-    import shared.synth
-
-    real = shared.synth.run_synth
-
-    def tiny(preset, seed, out, overrides=None, **kw):
-        return real(preset, seed, out, TINY, **kw)
-
-    monkeypatch.setattr(shared.synth, "run_synth", tiny)
+    shrink_synth(monkeypatch, TINY)
 
 
 def test_cli_drift_json(tmp_path, capsys, tiny_synth):

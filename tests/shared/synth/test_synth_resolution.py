@@ -18,6 +18,7 @@ from shared.synth.config import PRESETS, parse_resolution, preset_config
 from shared.synth.pipeline import intrinsics
 from shared.synth.trajectory import build_trajectory
 from shared.synth.world import build_world
+from tests.shared.synth.conftest import shrink_synth
 
 TINY = {"camera": {"frames": 3}, "gt": {"point_spacing": 0.05}}
 """Three frames; the image size comes from the preset or ``resolution``."""
@@ -220,14 +221,7 @@ def test_ground_truth_matches_the_geometry_at_the_new_size(runs, name):
 @pytest.fixture
 def three_frames(monkeypatch):
     """``trackgraph synth`` renders three frames of its preset (resolution passed through)."""
-    import shared.synth
-
-    real = shared.synth.run_synth
-
-    def short(preset, seed, out, overrides=None, **kw):
-        return real(preset, seed, out, TINY, **kw)
-
-    monkeypatch.setattr(shared.synth, "run_synth", short)
+    shrink_synth(monkeypatch, TINY)
 
 
 @pytest.mark.slow
