@@ -267,8 +267,8 @@ class FusionSession(Session):
         if self.store is not None:
             self.save(export=True)
         self._watermark(self.clock())  # the last feature messages acknowledged too
+        self.book.set_state("finished")  # before the event: a waiter reads a finished status
         self.finished.set()
-        self.book.set_state("finished")
         log.info("sequence finished at frame %d: %d segments", self.core.last_frame_index, len(self.core.segments.segments))
 
     def save(self, export: bool = False) -> None:

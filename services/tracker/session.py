@@ -334,11 +334,12 @@ class TrackerSession(Session):
         if not caught_up or self.pending or self.awaiting_features or self._open is not None or self.held or self.queued("frames"):
             return
         end = self._end.model_copy(update={"last_frame_index": self._last_index, "track_features_published": self._serial})
-        self.ends.put(end)
-        self._sent_end = end
-        log.info("sequence ended: %d frames tracked, last %d, %d feature messages", self.frames, self._last_index, self._serial)
-        self._end = None
+        # finished before the end is out: whoever acts on tracks/end must read a finished status
         self.book.set_state("finished")
+        self._sent_end = end
+        self._end = None
+        self.ends.put(end)
+        log.info("sequence ended: %d frames tracked, last %d, %d feature messages", self.frames, self._last_index, self._serial)
 
     # ---------------------------------------------------------------- time, status
 
