@@ -76,3 +76,33 @@ def test_winner_is_the_interpolated_strongest():
             np.array([[2]], np.int32), np.array([[5.0 * t]]), 1,
         )  # fmt: skip
         assert int(ids[0, 0]) == winner
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_kernel_equals_the_numpy_rule_bit_for_bit(seed):
+    from services.fusion.volume.mesh import merge_hypotheses_numpy, numba
+
+    if numba is None:
+        pytest.skip("numba is not installed")
+    rng = np.random.default_rng(seed)
+    v, ka, kb = 5000, int(rng.integers(1, 6)), int(rng.integers(1, 6))
+
+    def hypotheses(k):
+        # each track at most once per set; empties, zero weights (an edge end's share of 0),
+        # equal weights (ties) and -1 ids with a weight, as voxels and edge shares give them
+        ids = np.stack([rng.permutation(12)[:k] for _ in range(v)]).astype(np.int32)
+        ids[rng.random((v, k)) < 0.3] = -1
+        w = rng.choice([0.0, 0.5, 1.0, 2.0], size=(v, k)) * rng.choice([1.0, 0.25], size=(v, 1))
+        smooth = rng.random(v) < 0.5
+        w[smooth] = rng.random((int(smooth.sum()), k))
+        return ids, w
+
+    ids_a, w_a = hypotheses(ka)
+    ids_b, w_b = hypotheses(kb)
+    w_b[:, 0] = rng.random(v)  # continuous weights too
+    for k in {1, min(4, ka + kb), ka + kb, ka + kb + 2}:
+        got = merge_hypotheses(ids_a, w_a, ids_b, w_b, k)
+        want = merge_hypotheses_numpy(ids_a, w_a, ids_b, w_b, k)
+        assert got[0].dtype == want[0].dtype == np.int32 and got[1].dtype == want[1].dtype == np.float32
+        assert np.array_equal(got[0], want[0]), (k, np.argwhere(got[0] != want[0])[:5])
+        assert np.array_equal(got[1].view(np.uint32), want[1].view(np.uint32)), k
