@@ -31,7 +31,7 @@ from services.fusion.volume.hypotheses import confidence
 from services.fusion.volume.move import warm_up
 from services.fusion.volume.tsdf import HypothesisTSDF
 from shared.config.fusion import FusionConfig
-from shared.geometry import Intrinsics, backproject, pixel_stride, pose_from_row, pose_row
+from shared.geometry import Intrinsics, pixel_stride, pose_from_row, pose_row
 from shared.graph.roomgrid import RoomGrid
 from shared.graph.scene import SceneGraph
 from shared.messages.frames import Frame, TrackedFrame
@@ -541,8 +541,12 @@ def _concat_meshes(a: HypothesisMesh, b: HypothesisMesh) -> HypothesisMesh:
 
 def _seen_points(fr, T: Annotated[np.ndarray, "(4, 4) world-from-camera"]) -> Annotated[np.ndarray, "(N, 3) float32 world"]:
     """World points of every ``VIEW_SAMPLE_STRIDE``-th pixel of the frame with depth."""
-    depth = fr.depth_m()[::VIEW_SAMPLE_STRIDE, ::VIEW_SAMPLE_STRIDE]
-    pts = backproject(fr.intrinsics, fr.depth_m())[::VIEW_SAMPLE_STRIDE, ::VIEW_SAMPLE_STRIDE].reshape(-1, 3)
+    s, K = VIEW_SAMPLE_STRIDE, fr.intrinsics
+    depth = fr.depth_m()[::s, ::s]
+    # backproject's formula on the sampled pixels only (a 1200x680 frame has 3,000 of 816,000)
+    u = np.arange(0, K.width, s, dtype=np.float64)
+    v = np.arange(0, K.height, s, dtype=np.float64)
+    pts = np.stack([(u[None, :] - K.cx) / K.fx * depth, (v[:, None] - K.cy) / K.fy * depth, depth.astype(np.float64)], axis=-1).reshape(-1, 3)
     pts = pts[(depth.reshape(-1) > 0) & np.isfinite(depth.reshape(-1))]
     T = np.asarray(T, np.float64)
     return (pts @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
