@@ -19,6 +19,7 @@ from services.fusion.corrections.observations import ObservationLog
 from services.fusion.corrections.poses import CorrectionError, PoseBook
 from services.fusion.layers.roomnames import (
     VIEW_SAMPLE_STRIDE,
+    RoomLookup,
     RoomVocabulary,
     describe_rooms,
     view_shares,
@@ -252,9 +253,10 @@ class FusionCore:
             return none
         fs = h.layout.freespace
         lab, ids = h.room_layout.labels, self.hierarchy.room_ids
+        lookup = RoomLookup(lab, ids, fs.resolution)  # one distance transform for every view
         empty = np.zeros((0, 2), np.float32)
         shares = [
-            view_shares(lab, ids, order, fs.cell_of(self.view_points.get(f, empty)), fs.cell_of(self.poses[at[f]][None, :2])[0], fs.resolution)
+            view_shares(lab, ids, order, fs.cell_of(self.view_points.get(f, empty)), fs.cell_of(self.poses[at[f]][None, :2])[0], fs.resolution, lookup)
             for f in frames
         ]  # fmt: skip
         if not shares:

@@ -167,6 +167,48 @@ def describe_rooms(
     return out
 
 
+class RoomLookup:
+    """The room of any free-space cell: its own, or the nearest room cell's within a reach.
+
+    One distance transform of the room grid serves every lookup: an update gives every
+    keyframe view to a room, and a transform per view made that cost grow with the views
+    times the building's grid (hundreds of keyframes over a building)."""
+
+    def __init__(
+        self,
+        labels: Annotated[np.ndarray, "(H, W) int room index per cell, -1 none"],
+        room_ids: Annotated[np.ndarray, "(R,) int64 id of each room index"],
+        resolution: float,
+    ) -> None:
+        self.labels = labels
+        self.room_ids = np.asarray(room_ids, np.int64)
+        self.resolution = resolution
+        self._nearest: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    @property
+    def empty(self) -> bool:
+        return self.labels.size == 0 or not len(self.room_ids) or self.labels.max() < 0
+
+    def rooms_of(
+        self, cells: Annotated[np.ndarray, "(K, 2) int64 grid cells, may lie outside"], reach_m: float = VIEW_ROOM_REACH_M
+    ) -> Annotated[np.ndarray, "(K,) int64 room id, -1 none"]:
+        cells = np.asarray(cells, np.int64).reshape(-1, 2)
+        out = np.full(len(cells), -1, np.int64)
+        if not len(cells) or self.empty:
+            return out
+        if self._nearest is None:  # computed on the first lookup that needs it
+            dist, (ni, nj) = ndimage.distance_transform_edt(self.labels < 0, return_indices=True)
+            self._nearest = dist, ni, nj
+        dist, ni, nj = self._nearest
+        h, w = self.labels.shape
+        inside = (cells[:, 0] >= 0) & (cells[:, 1] >= 0) & (cells[:, 0] < h) & (cells[:, 1] < w)
+        c = cells[inside]
+        near = (dist[c[:, 0], c[:, 1]] * self.resolution) <= reach_m
+        lab = self.labels[ni[c[:, 0], c[:, 1]], nj[c[:, 0], c[:, 1]]]
+        out[inside] = np.where(near & (lab >= 0), self.room_ids[np.maximum(lab, 0)], -1)
+        return out
+
+
 def rooms_of_positions(
     labels: Annotated[np.ndarray, "(H, W) int room index per cell, -1 none"],
     room_ids: Annotated[np.ndarray, "(R,) int64 id of each room index"],
@@ -175,19 +217,7 @@ def rooms_of_positions(
     reach_m: float = VIEW_ROOM_REACH_M,
 ) -> Annotated[np.ndarray, "(K,) int64 room id, -1 none"]:
     """The room of each cell: its own, or the nearest room cell's within ``reach_m``."""
-    cells = np.asarray(cells, np.int64).reshape(-1, 2)
-    out = np.full(len(cells), -1, np.int64)
-    if not len(cells) or labels.size == 0 or not len(room_ids) or labels.max() < 0:
-        return out
-    h, w = labels.shape
-    inside = (cells[:, 0] >= 0) & (cells[:, 1] >= 0) & (cells[:, 0] < h) & (cells[:, 1] < w)
-    dist, (ni, nj) = ndimage.distance_transform_edt(labels < 0, return_indices=True)
-    c = cells[inside]
-    near = (dist[c[:, 0], c[:, 1]] * resolution) <= reach_m
-    lab = labels[ni[c[:, 0], c[:, 1]], nj[c[:, 0], c[:, 1]]]
-    got = np.where(near & (lab >= 0), np.asarray(room_ids, np.int64)[np.maximum(lab, 0)], -1)
-    out[inside] = got
-    return out
+    return RoomLookup(labels, room_ids, resolution).rooms_of(cells, reach_m)
 
 
 def view_shares(
@@ -197,15 +227,18 @@ def view_shares(
     seen_cells: Annotated[np.ndarray, "(N, 2) int64 cells of the view's points"],
     camera_cell: Annotated[np.ndarray, "(2,) int64"],
     resolution: float,
+    lookup: RoomLookup | None = None,
 ) -> Annotated[np.ndarray, "(len(order),) float64"]:
     """The share of a view's in-room points in each room of ``order`` (ids); one-hot on the
-    camera's room for a view that sees none; all zero when the camera is in none either."""
+    camera's room for a view that sees none; all zero when the camera is in none either.
+    ``lookup``: the same grid's :class:`RoomLookup`, shared by the views of one update."""
+    lookup = lookup or RoomLookup(labels, room_ids, resolution)
     col = {rid: k for k, rid in enumerate(order)}
     out = np.zeros(len(order))
-    rooms = rooms_of_positions(labels, room_ids, seen_cells, resolution)
+    rooms = lookup.rooms_of(seen_cells)
     rooms = rooms[rooms >= 0]
     if not len(rooms):
-        rooms = rooms_of_positions(labels, room_ids, np.asarray(camera_cell).reshape(1, 2), resolution)
+        rooms = lookup.rooms_of(np.asarray(camera_cell).reshape(1, 2))
         rooms = rooms[rooms >= 0]
     for rid in rooms.tolist():
         if rid in col:

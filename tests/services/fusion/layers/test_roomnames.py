@@ -7,6 +7,7 @@ import pytest
 
 from services.fusion.layers.roomnames import (
     VIEW_RIDGE,
+    RoomLookup,
     RoomVocabulary,
     describe_rooms,
     room_features,
@@ -90,6 +91,30 @@ def test_view_shares_count_the_points_each_room_holds() -> None:
     nothing = np.array([[20, 20]])
     np.testing.assert_allclose(view_shares(lab, ids, [10, 20], nothing, np.array([2, 8]), 0.25), [0.0, 1.0])
     np.testing.assert_allclose(view_shares(lab, ids, [10, 20], nothing, np.array([30, 30]), 0.25), [0.0, 0.0])
+
+
+def test_the_views_of_one_update_share_one_distance_transform(monkeypatch) -> None:
+    """The shares through a shared lookup equal each view's own, and the room grid's
+    distance transform runs once for all views, not once per view (hundreds of keyframes
+    over a building)."""
+    from services.fusion.layers import roomnames
+
+    rng = np.random.default_rng(5)
+    lab = np.full((40, 30), -1, np.int32)
+    lab[2:15, 3:20], lab[20:38, 5:28] = 0, 1
+    ids = np.array([10, 20])
+    views = [rng.integers(-3, 45, (25, 2)) for _ in range(12)]
+    cams = [rng.integers(0, 40, 2) for _ in range(12)]
+    own = [view_shares(lab, ids, [10, 20], v, c, 0.1) for v, c in zip(views, cams, strict=True)]
+    calls = []
+    edt = roomnames.ndimage.distance_transform_edt
+    monkeypatch.setattr(roomnames.ndimage, "distance_transform_edt", lambda *a, **k: calls.append(1) or edt(*a, **k))
+    lookup = RoomLookup(lab, ids, 0.1)
+    shared = [view_shares(lab, ids, [10, 20], v, c, 0.1, lookup) for v, c in zip(views, cams, strict=True)]
+    assert len(calls) == 1
+    for a, b in zip(own, shared, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert sum(float(s.sum()) for s in own) > 5  # most views see a room
 
 
 def test_views_alone_and_names() -> None:
