@@ -550,14 +550,30 @@ def region_outline(
 
 
 def place_outlines(
-    fs: FreeSpaceMap, owner: Annotated[np.ndarray, "(H, W) int32 place index per cell, -1 none"], n: int
+    fs: FreeSpaceMap,
+    owner: Annotated[np.ndarray, "(H, W) int32 place index per cell, -1 none"],
+    n: int,
+    cache: dict[tuple[tuple[int, int], bytes], np.ndarray] | None = None,
 ) -> list[Annotated[np.ndarray, "(B, 2) float64 world xy"]]:
-    """The outline of each place's free-space region (its geodesic cells), in world xy."""
+    """The outline of each place's free-space region (its geodesic cells), in world xy.
+
+    ``cache`` (kept by the caller between rebuilds) maps a region's mask to its outline:
+    away from the robot the regions stay as they were, and tracing them again made a rebuild
+    grow with the building. It is left holding this call's regions only."""
     out = [np.zeros((0, 2)) for _ in range(n)]
+    seen: dict[tuple[tuple[int, int], bytes], np.ndarray] = {}
     for k, box in enumerate(ndimage.find_objects(owner + 1, max_label=n)):
         if box is None:
             continue
-        corners = region_outline(owner[box] == k)
+        mask = owner[box] == k
+        key = (mask.shape, np.packbits(mask).tobytes())
+        corners = cache.get(key) if cache is not None else None
+        if corners is None:
+            corners = region_outline(mask)
+        seen[key] = corners
         offset = np.array([box[0].start, box[1].start], np.int64)
         out[k] = (corners + offset + fs.origin_cell).astype(np.float64) * fs.resolution
+    if cache is not None:
+        cache.clear()
+        cache.update(seen)
     return out

@@ -221,6 +221,8 @@ class HierarchyBuilder:
         self._next_room = 0
         self.room_ids = np.zeros(0, np.int64)
         """Room id of each room index of the last build."""
+        self._outlines: dict = {}
+        """Place outlines of the last build by region mask (``place_outlines``)."""
 
     def restore(self, places: list[PlaceNode], rooms: list[RoomNode]) -> None:
         """Continue ids from a saved graph (after a restart)."""
@@ -240,7 +242,7 @@ class HierarchyBuilder:
         layout = extract_places(points, trajectory, self.cfg, self.params, floor_z)
         rooms = segment_rooms(layout.freespace, layout.cells, layout.positions, self.cfg)
         fs = layout.freespace
-        outlines = place_outlines(fs, layout.owner, len(layout))
+        outlines = place_outlines(fs, layout.owner, len(layout), self._outlines)
         if active is None:
             is_active = np.ones(len(layout), bool)
         else:

@@ -179,3 +179,30 @@ def test_region_outline_is_the_outer_counter_clockwise_corner_loop():
     ring[2, 2] = False
     assert region_outline(ring).tolist() == [[0, 0], [5, 0], [5, 5], [0, 5]]
     assert region_outline(np.zeros((3, 3), bool)).shape == (0, 2)
+
+
+def test_outlines_from_the_cache_equal_traced_ones_as_the_map_grows(monkeypatch):
+    """A rebuild reuses the outline of every place region it traced before; the outlines equal
+    those traced afresh, and the cache keeps only the last rebuild's regions."""
+    import services.fusion.layers.places as places
+
+    small = two_rooms()
+    floor = np.column_stack([np.mgrid[8:11:0.05, 0:3:0.05].reshape(2, -1).T, np.zeros(60 * 60)])
+    grown = np.concatenate([small, _wall((8, 0), (11, 0)), _wall((8, 3), (11, 3)), _wall((11, 0), (11, 3)), floor])
+    traced, calls = places.region_outline, []
+    cache: dict = {}
+    traces = []
+    for pts in (small, grown, grown):
+        lay = extract_places(pts)
+        fresh = places.place_outlines(lay.freespace, lay.owner, len(lay))
+        calls.clear()
+        monkeypatch.setattr(places, "region_outline", lambda m: calls.append(1) or traced(m))
+        cached = places.place_outlines(lay.freespace, lay.owner, len(lay), cache)
+        monkeypatch.setattr(places, "region_outline", traced)
+        assert len(cached) == len(fresh) > 2
+        for a, b in zip(fresh, cached, strict=True):
+            np.testing.assert_array_equal(a, b)
+        assert len(cache) <= len(lay)
+        traces.append((len(calls), len(lay)))
+    (first, n1), (second, n2), (third, n3) = traces
+    assert first == n1 and 0 < second < n2 and third == 0, traces
