@@ -17,6 +17,7 @@ from typing import Annotated
 
 import numpy as np
 
+from shared.synth import kernels
 from shared.synth.primitives import contains, world_mesh
 from shared.synth.textures import MaterialTable, albedo
 from shared.synth.vocabulary import STRUCTURAL
@@ -24,6 +25,10 @@ from shared.synth.world import World
 
 PROBE = 0.008
 """Step along the normal used to decide whether a surface point faces free air (m)."""
+GRID = 0.25
+"""Cell (m) of the xy grid that finds each part's candidate probes in :func:`_in_air`."""
+SEEN_TOL = 0.02
+"""A frame sees a point whose depth is within this (m, plus 1% of the depth) of its pixel's."""
 
 
 @dataclass
@@ -55,21 +60,39 @@ def _in_air(world: World, probes: Annotated[np.ndarray, "(N, 3)"]) -> Annotated[
     for x0, y0, x1, y1 in rects:
         inside |= (x > x0) & (x < x1) & (y > y0) & (y < y1)
     inside &= (z > 0) & (z < layout.wall_height)
-    # Candidates per part come from a sort on x, so each part tests only nearby points.
-    order = np.argsort(x, kind="stable")
-    xs = x[order]
     solid = np.zeros(len(probes), bool)
+    use_kernel = kernels.ENABLED and probes.dtype == np.float64 and len(probes) > 0
+    if use_kernel:
+        # Candidates per part come from a grid in xy (GRID m cells); each part's are then put
+        # in the order the numpy path's sort on x gives them (x, then index), so that
+        # ``contains`` sees the very same arrays.
+        probes = np.ascontiguousarray(probes)
+        origin = probes[:, :2].min(axis=0)
+        nx, ny = (np.floor((probes[:, :2].max(axis=0) - origin) / GRID).astype(np.int64) + 1).tolist()
+        cell_start = np.zeros(nx * ny + 1, np.int64)
+        members = np.empty(len(probes), np.int64)
+        kernels.grid_points(probes, origin, GRID, nx, ny, cell_start, members)
+        scratch = np.empty(len(probes), np.int64)
+    else:
+        # Candidates per part come from a sort on x, so each part tests only nearby points.
+        order = np.argsort(x, kind="stable")
+        xs = x[order]
     for o in world.objects:
         for part in o.parts:
             v, _ = world_mesh(part)
             lo, hi = v.min(axis=0), v.max(axis=0)
-            a, b = np.searchsorted(xs, lo[0]), np.searchsorted(xs, hi[0], side="right")
-            if a >= b:
-                continue
-            cand = order[a:b]
-            pc = probes[cand]
-            box = np.all((pc >= lo) & (pc <= hi), axis=1)
-            cand, pc = cand[box], pc[box]
+            if use_kernel:
+                cand = scratch[:kernels.in_box(probes, cell_start, members, origin, GRID, nx, ny, lo, hi, scratch)]
+                cand = cand[np.lexsort((cand, probes[cand, 0]))]
+                pc = probes[cand]
+            else:
+                a, b = np.searchsorted(xs, lo[0]), np.searchsorted(xs, hi[0], side="right")
+                if a >= b:
+                    continue
+                cand = order[a:b]
+                pc = probes[cand]
+                box = np.all((pc >= lo) & (pc <= hi), axis=1)
+                cand, pc = cand[box], pc[box]
             if len(cand) == 0:
                 continue
             inv = np.linalg.inv(part.pose)
@@ -120,7 +143,7 @@ def observed_in(
     depth_m: Annotated[np.ndarray, "(H, W) float metres, 0 = none"],
     K,
     T_world_cam: Annotated[np.ndarray, "(4, 4)"],
-    tol_m: float = 0.02,
+    tol_m: float = SEEN_TOL,
 ) -> Annotated[np.ndarray, "(M,) int64 indices of points this frame sees"]:
     """Points that project inside the image and agree with the rendered depth there."""
     R, t = T_world_cam[:3, :3], T_world_cam[:3, 3]
@@ -135,6 +158,78 @@ def observed_in(
     d = depth_m[v, u]
     seen = (d > 0) & (np.abs(z[front] - d) < tol_m + 0.01 * d)
     return front[seen]
+
+
+CHUNK_SIZE = 0.5
+"""Edge (m) of the cubes :class:`PointChunks` groups an object's points by."""
+
+
+@dataclass
+class PointChunks:
+    """A cloud's point indices grouped by object and, within one, by :data:`CHUNK_SIZE` cube,
+    with each group's bounding box: a frame skips the groups it cannot see at all (most of a
+    wall's or a floor's points are outside any one view)."""
+
+    order: Annotated[np.ndarray, "(N,) int64 point indices"]
+    bounds: Annotated[np.ndarray, "(objects + 1,) int64: object o's points are order[bounds[o]:bounds[o + 1]]"]
+    object_chunks: Annotated[np.ndarray, "(objects + 1,) int64: object o's chunks are object_chunks[o]:object_chunks[o + 1]"]
+    chunk_start: Annotated[np.ndarray, "(C + 1,) int64: chunk c's points are order[chunk_start[c]:chunk_start[c + 1]]"]
+    lo: Annotated[np.ndarray, "(C, 3) float64 chunk box"]
+    hi: Annotated[np.ndarray, "(C, 3) float64"]
+
+
+def point_chunks(points: Annotated[np.ndarray, "(N, 3) float32 world"], labels: Annotated[np.ndarray, "(N,) int object id"],
+                 n_objects: int) -> PointChunks:
+    """Group ``points`` by object id (0 to ``n_objects`` - 1) and cube (see :class:`PointChunks`)."""
+    n = len(points)
+    if n == 0:
+        empty = np.zeros(n_objects + 1, np.int64)
+        return PointChunks(np.zeros(0, np.int64), empty, empty, np.zeros(1, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
+    cell = np.floor(points / np.float32(CHUNK_SIZE)).astype(np.int64)
+    cell -= cell.min(axis=0)
+    span = cell.max(axis=0) + 1
+    key = ((labels.astype(np.int64) * span[0] + cell[:, 0]) * span[1] + cell[:, 1]) * span[2] + cell[:, 2]
+    order = np.argsort(key, kind="stable")
+    key = key[order]
+    starts = np.flatnonzero(np.concatenate([[True], key[1:] != key[:-1]]))
+    chunk_start = np.append(starts, n).astype(np.int64)
+    object_chunks = np.searchsorted(labels[order[starts]], np.arange(n_objects + 1)).astype(np.int64)
+    grouped = points[order].astype(np.float64)
+    return PointChunks(order.astype(np.int64), chunk_start[object_chunks], object_chunks, chunk_start,
+                       np.minimum.reduceat(grouped, starts), np.maximum.reduceat(grouped, starts))
+
+
+def observed_objects(
+    points: Annotated[np.ndarray, "(N, 3) float32 world"],
+    chunks: PointChunks,
+    shown: Annotated[np.ndarray, "(S,) int64 object ids"],
+    depth_m: Annotated[np.ndarray, "(H, W) float32 metres, 0 = none"],
+    K,
+    T_world_cam: Annotated[np.ndarray, "(4, 4)"],
+) -> Annotated[np.ndarray, "(M,) int64 indices into points"]:
+    """:func:`observed_in` over the points of the objects in ``shown`` (those a frame's pixels
+    show; ``chunks`` from :func:`point_chunks`): the indices of those it sees, in no
+    particular order."""
+    shown = np.asarray(shown, np.int64)
+    order, bounds = chunks.order, chunks.bounds
+    if not (kernels.ENABLED and points.dtype == np.float32 and depth_m.dtype == np.float32):
+        cand = np.concatenate([order[bounds[o]:bounds[o + 1]] for o in shown]) if len(shown) else np.zeros(0, np.int64)
+        return cand[observed_in(points[cand], depth_m, K, T_world_cam)]
+    n = int((bounds[shown + 1] - bounds[shown]).sum())
+    seen = np.empty(n, np.int64)
+    unsure = np.empty(n, np.int64)
+    n_seen, n_unsure = kernels.observed_points(
+        np.ascontiguousarray(points), order, chunks.object_chunks, chunks.chunk_start, chunks.lo, chunks.hi,
+        shown, np.ascontiguousarray(depth_m), np.ascontiguousarray(T_world_cam[:3, :3], np.float64),
+        np.ascontiguousarray(T_world_cam[:3, 3], np.float64), float(K.fx), float(K.fy), float(K.cx), float(K.cy),
+        np.float32(SEEN_TOL), seen, unsure,
+    )
+    seen = seen[:n_seen]
+    if n_unsure:
+        # Points within rounding of an edge: numpy's own projection decides them.
+        unsure = unsure[:n_unsure]
+        seen = np.concatenate([seen, unsure[observed_in(points[unsure], depth_m, K, T_world_cam)]])
+    return seen
 
 
 def keep_observed(cloud: GroundTruthCloud, observed: Annotated[np.ndarray, "(N,) bool"], keep: set[int]) -> GroundTruthCloud:

@@ -130,30 +130,31 @@ def generate(config: SynthConfig | str, seed: int, out_dir: str | Path, *, overw
         # Sampled before rendering so each frame can mark the points it sees (see groundtruth).
         cloud = groundtruth.sample_cloud(world, {o.id for o in world.objects}, cfg.gt.point_spacing, seed, rc.textures)
         observed = np.zeros(len(cloud.points), bool)
-        # Points grouped by object, so each frame projects only the objects its pixels show.
-        by_object = np.argsort(cloud.labels, kind="stable")
-        bounds = np.searchsorted(cloud.labels[by_object], np.arange(len(world.objects) + 1))
+        # Points grouped by object (and place), so each frame projects only the objects its
+        # pixels show (and of those only the parts in view).
+        chunks = groundtruth.point_chunks(cloud.points, cloud.labels, len(world.objects))
 
         def one(i: int) -> tuple[np.ndarray, np.ndarray]:
             fr = renderer.render(traj.poses[i], np.random.default_rng([seed, 11, i]))
-            shown = np.unique(fr.instances[fr.instances >= 0])
-            cand = np.concatenate([by_object[bounds[o]:bounds[o + 1]] for o in shown]) if len(shown) else np.zeros(0, np.int64)
-            seen = cand[groundtruth.observed_in(cloud.points[cand], fr.depth, K, traj.poses[i])]
-            depth_u16 = writer.depth_units(fr.depth, rc.depth_scale)
             inst_u16 = (fr.instances + 1).astype(np.uint16)
+            counts = np.bincount(inst_u16.ravel(), minlength=n_ids + 1)
+            shown = np.flatnonzero(counts[1:])
+            seen = groundtruth.observed_objects(cloud.points, chunks, shown, fr.depth, K, traj.poses[i])
+            depth_u16 = writer.depth_units(fr.depth, rc.depth_scale)
             writer.write_bytes(staging / "results" / f"frame{i:06d}.jpg", writer.jpeg(fr.rgb, rc.jpeg_quality))
             writer.write_bytes(staging / "results" / f"depth{i:06d}.png", writer.png_u16(depth_u16))
             writer.write_bytes(staging / "instances" / f"instance{i:06d}.png", writer.png_u16(inst_u16))
             if i in sheet_idx:
                 sheet[i] = (i, fr.rgb, depth_u16.astype(np.float32) / np.float32(rc.depth_scale), inst_u16)
-            return np.bincount(inst_u16.ravel(), minlength=n_ids + 1), seen
+            return counts, seen
 
         pixels = np.zeros(n_ids + 1, np.int64)
         frames_seen = np.zeros(n_ids + 1, np.int64)
         (staging / "results").mkdir(parents=True, exist_ok=True)
         (staging / "instances").mkdir(parents=True, exist_ok=True)
-        # Threads: numpy and Open3D release the GIL for the heavy parts, so two frames in
+        # Threads: numpy, numba and PIL release the GIL for the heavy parts, so two frames in
         # flight keep two cores busy; results do not depend on the order frames finish in.
+        # (Open3D's ray casting holds the GIL but uses all cores itself: leave it so.)
         n_workers = workers or max(1, min(4, os.cpu_count() or 1))
         with _progress(progress) as bar, ThreadPoolExecutor(n_workers) as pool:
             task = bar.add_task(f"{n} frames {K.width}x{K.height}", total=n)

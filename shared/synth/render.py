@@ -5,6 +5,9 @@ geometry id is the object and its primitive id gives the part, whose material an
 colour the pixel. Rays are built here rather than with ``create_rays_pinhole``, which puts
 pixel centres at (u + 0.5, v + 0.5); ours are at integer (u, v), matching cx = (W - 1) / 2.
 Each ray's direction has camera z = 1, so the hit distance is the z-depth.
+
+Shading runs as numba kernels (:mod:`shared.synth.kernels`) where numba is installed, giving
+:meth:`Renderer.render_numpy`'s frames byte for byte; the numpy path is the reference.
 """
 
 from __future__ import annotations
@@ -16,9 +19,10 @@ import numpy as np
 
 from shared.geometry import Intrinsics
 from shared.o3d import import_open3d
+from shared.synth import kernels
 from shared.synth.config import RenderConfig
 from shared.synth.primitives import world_mesh
-from shared.synth.textures import MaterialTable, albedo
+from shared.synth.textures import _FLAT, MaterialTable, albedo, apply_patterns
 from shared.synth.world import World
 
 SUNS = np.array([[0.35, 0.25, 0.9], [-0.55, -0.5, 0.45]])
@@ -80,15 +84,24 @@ class Renderer:
         self._noise = np.random.default_rng(0xC0FFEE).standard_normal((2 * K.height, 2 * K.width, 3), dtype=np.float32)
         self._xc = np.broadcast_to(((u - K.cx) / K.fx)[None, :], (K.height, K.width)).astype(np.float32)
         self._yc = np.broadcast_to(((v - K.cy) / K.fy)[:, None], (K.height, K.width)).astype(np.float32)
+        # The kernels' per-sequence constants, in the types and roundings render_numpy uses.
+        self._xc_row = np.ascontiguousarray(self._xc[0])
+        self._yc_col = np.ascontiguousarray(self._yc[:, 0])
+        self._suns = SUNS.astype(np.float32)
+        self._sun_weights = np.array([np.float32(cfg.sun_strength * w) for w in SUN_WEIGHTS], np.float32)
+        self._lamps32 = np.ascontiguousarray(self.lamps.astype(np.float32)).reshape(-1, 3)
 
     def cast(self, pose: Annotated[np.ndarray, "(4, 4) camera-to-world"]) -> dict[str, np.ndarray]:
         """Raw hits: t_hit (z-depth, inf on a miss), geometry and primitive ids, normals, and
         the (H, W, 6) float32 rays (origin, direction with camera z = 1)."""
         R = pose[:3, :3].astype(np.float32)
         rays = np.empty((self.K.height, self.K.width, 6), np.float32)
-        rays[..., :3] = pose[:3, 3].astype(np.float32)
-        for k in range(3):
-            rays[..., 3 + k] = R[k, 0] * self._xc + R[k, 1] * self._yc + R[k, 2]
+        if kernels.ENABLED:
+            kernels.pinhole_rays(R, pose[:3, 3].astype(np.float32), self._xc_row, self._yc_col, rays)
+        else:
+            rays[..., :3] = pose[:3, 3].astype(np.float32)
+            for k in range(3):
+                rays[..., 3 + k] = R[k, 0] * self._xc + R[k, 1] * self._yc + R[k, 2]
         ans = self.scene.cast_rays(self._o3c.Tensor.from_numpy(rays))
         out = {k: ans[k].numpy() for k in ("t_hit", "geometry_ids", "primitive_ids", "primitive_normals")}
         out["rays"] = rays
@@ -97,8 +110,42 @@ class Renderer:
     def render(self, pose: Annotated[np.ndarray, "(4, 4) camera-to-world"],
                rng: np.random.Generator | None = None) -> RenderedFrame:
         """One frame; ``rng`` draws the sensor noise (none without it)."""
+        if kernels.ENABLED:
+            return self._render_kernels(pose, rng)
+        return self.render_numpy(pose, rng)
+
+    def _render_kernels(self, pose: np.ndarray, rng: np.random.Generator | None) -> RenderedFrame:
+        """:meth:`render_numpy`'s frame, byte for byte, from the kernels of
+        :mod:`shared.synth.kernels` (patterned materials still in numpy)."""
         cfg = self.cfg
         hits = self.cast(pose)
+        t_hit = hits["t_hit"]
+        H, W = t_hit.shape
+        obj, light, base, shade = self.shade_kernels(hits)
+        rgb_noise = rng is not None and cfg.rgb_noise_std > 0
+        depth_noise = rng is not None and cfg.depth_noise_std > 0
+        dy = dx = 0
+        if rgb_noise:
+            dy, dx = int(rng.integers(H)), int(rng.integers(W))
+        rgb = np.empty((H, W, 3), np.uint8)
+        inst = np.empty((H, W), np.int32)
+        depth = np.empty((H, W), np.float32)
+        kernels.compose(
+            t_hit, base, shade, light, obj, cfg.textures, self._noise, dy, dx,
+            np.float32(cfg.rgb_noise_std if rgb_noise else 0.0), np.float32(cfg.depth_max), not depth_noise,
+            rgb, inst, depth,
+        )
+        if depth_noise:
+            hit = np.isfinite(t_hit)
+            noise = rng.standard_normal(depth.shape, dtype=np.float32) * np.float32(cfg.depth_noise_std)
+            depth = np.where(hit, depth + noise * depth**2, np.float32(0))
+            depth = np.where((depth > 0) & (depth <= cfg.depth_max), depth, np.float32(0)).astype(np.float32)
+        return RenderedFrame(rgb, depth, inst)
+
+    def shade_numpy(self, hits: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The hit mask (H, W), and for the hits in raster order the object ids (N,) int32 and
+        the lit colour (N, 3) float32 in 0-255 units, before noise and rounding."""
+        cfg = self.cfg
         t_hit = hits["t_hit"]
         H, W = t_hit.shape
         hit = np.isfinite(t_hit)
@@ -134,6 +181,45 @@ class Renderer:
         local = self.table.to_local_soa(part, p)
         color = albedo(self.table, part, local, cfg.textures)
         color *= (light * np.float32(255.0))[:, None]
+        return hit, obj, color
+
+    def shade_kernels(self, hits: dict[str, np.ndarray]) -> tuple[np.ndarray, ...]:
+        """For the hits in raster order: object ids (N,) int32, light (N,) float32, and the
+        albedo (N, 3) float32 before the grime shade (N,) float32 that textures multiply it by
+        (see :func:`shared.synth.kernels.compose`)."""
+        cfg, table = self.cfg, self.table
+        t_hit = hits["t_hit"]
+        size = t_hit.size
+        obj = np.empty(size, np.int32)
+        part = np.empty(size, np.int32)
+        local = np.empty((size, 3), np.float32)
+        light = np.empty(size, np.float32)
+        base = np.empty((size, 3), np.float32)
+        shade = np.empty(size, np.float32)
+        pat = np.empty(size, np.int16)
+        n = kernels.shade_hits(
+            t_hit.reshape(size), hits["geometry_ids"].reshape(size), hits["primitive_ids"].reshape(size),
+            hits["primitive_normals"].reshape(size, 3), hits["rays"].reshape(size, 6),
+            self.geom_obj, self.tri_offset, self.tri_part,
+            self._suns, self._sun_weights, np.float32(cfg.ambient), np.float32(cfg.bounce),
+            self._lamps32, np.float32(cfg.lamp_strength), np.float32(LAMP_FALLOFF**2),
+            table.rot32, table.trans32, table.color, table.color2, table.pattern, table.scale, _FLAT,
+            cfg.textures, obj, part, local, light, base, shade, pat,
+        )
+        if cfg.textures and n:
+            kinds = np.flatnonzero(np.bincount(pat[:n]))
+            apply_patterns(table, part[:n], local[:n], pat[:n], kinds, base[:n])
+        return obj[:n], light[:n], base[:n], shade[:n]
+
+    def render_numpy(self, pose: Annotated[np.ndarray, "(4, 4) camera-to-world"],
+                     rng: np.random.Generator | None = None) -> RenderedFrame:
+        """:meth:`render` in numpy: the reference of the kernels (used without numba)."""
+        cfg = self.cfg
+        hits = self.cast(pose)
+        t_hit = hits["t_hit"]
+        H, W = t_hit.shape
+        hit, obj, color = self.shade_numpy(hits)
+        everywhere = bool(hit.all())
         if everywhere:
             rgb = color.reshape(H, W, 3)
             inst = obj.reshape(H, W).astype(np.int32)

@@ -1,4 +1,6 @@
-"""Procedural textures evaluated at 3D points in each part's local frame (vectorised numpy).
+"""Procedural textures evaluated at 3D points in each part's local frame (vectorised numpy;
+value noise, tiles and checker run as numba kernels where numba is installed, to the same bits:
+:mod:`shared.synth.kernels`).
 
 The same functions colour rendered pixels and ground-truth points, so a point's colour in
 ``gt/colors.npy`` is the unlit albedo the renderer shades.
@@ -7,11 +9,13 @@ The same functions colour rendered pixels and ground-truth points, so a point's 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Annotated
 
 import numpy as np
 
+from shared.synth import kernels
 from shared.synth.primitives import Part, Pattern
 
 Points = Annotated[np.ndarray, "(N, 3) float"]
@@ -100,6 +104,15 @@ def _hash(*ints: np.ndarray) -> np.ndarray:
 def value_noise(p: Points) -> Annotated[np.ndarray, "(N,) float32 in [0, 1)"]:
     """Smooth 3D value noise with unit lattice spacing (period 64)."""
     p = np.asarray(p, np.float32)
+    if kernels.ENABLED:
+        out = np.empty(len(p), np.float32)
+        kernels.value_noise_kernel(np.ascontiguousarray(p), _FLAT, out)
+        return out
+    return value_noise_numpy(p)
+
+
+def value_noise_numpy(p: Annotated[np.ndarray, "(N, 3) float32"]) -> Annotated[np.ndarray, "(N,) float32 in [0, 1)"]:
+    """:func:`value_noise` in numpy (the reference of its kernel)."""
     fl = np.floor(p)
     f = p - fl
     u = f * f * (3 - 2 * f)
@@ -218,6 +231,70 @@ def _clock(q: Points, dims: np.ndarray, motif: np.ndarray, c1: np.ndarray, c2: n
     return np.where(rim[:, None], c2, col).astype(np.float32)
 
 
+def apply_patterns(table: MaterialTable, part_idx: Annotated[np.ndarray, "(N,) int"], local: Points,
+                   pat: Annotated[np.ndarray, "(N,) int16"], kinds: Iterable[int], out: Colors) -> None:
+    """Overwrite ``out``'s rows of the patterned materials (all but SOLID and NOISE) among
+    ``kinds`` with their pattern's albedo; ``pat`` is each point's pattern."""
+    for kind in kinds:
+        if kind in (Pattern.SOLID, Pattern.NOISE):
+            continue
+        s = np.flatnonzero(pat == kind)
+        sub = part_idx.take(s)
+        q, sc = local.take(s, axis=0), table.scale.take(sub)
+        a1, a2 = table.color.take(sub, axis=0), table.color2.take(sub, axis=0)
+        if kind in (Pattern.STRIPES, Pattern.WOOD, Pattern.PLANKS):
+            ax = table.axis.take(sub).astype(np.int64)
+            rows = np.arange(len(s))
+            along = q[rows, ax]
+            across = q[rows, (ax + 1) % 3]
+        if kind == Pattern.STRIPES:
+            res = _mix(a1, a2, _smoothstep(0.4, 0.6, 0.5 + 0.5 * np.sin(2 * math.pi * along * sc)))
+        elif kind == Pattern.CHECKER and kernels.ENABLED:
+            res = np.empty_like(a1)
+            kernels.checker(q, sc, a1, a2, res)
+        elif kind == Pattern.CHECKER:
+            cells = np.floor(q * sc[:, None] + 1e-3).astype(np.int64).sum(axis=1)
+            res = _mix(a1, a2, (cells % 2).astype(np.float32))
+        elif kind == Pattern.WOOD:
+            other = q[rows, (ax + 2) % 3]
+            ring = (across + 0.3 * other) * sc + 2.5 * fbm(q * np.float32(4.0))
+            res = _mix(a1, a2, ((0.5 + 0.5 * np.sin(2 * math.pi * ring)) ** 3).astype(np.float32))
+        elif kind == Pattern.PLANKS:
+            width = 1.0 / sc
+            k = np.floor(across / width)
+            length = 1.3
+            shift = _hash(k, np.zeros_like(k), np.ones_like(k)) * length
+            j = np.floor((along + shift) / length)
+            tint = 0.82 + 0.3 * _hash(k, j, np.full_like(k, 2))
+            grain = fbm(np.stack([along * 1.5, across * 40, k], axis=1))
+            res = _mix(a1, a2, grain * 0.6) * tint[:, None]
+            fa, fb = (across / width) % 1.0, ((along + shift) / length) % 1.0
+            seam = (np.minimum(fa, 1 - fa) < 0.03) | (np.minimum(fb, 1 - fb) < 0.004)
+            res[seam] *= 0.55
+        elif kind == Pattern.TILES and kernels.ENABLED:
+            res = np.empty_like(a1)
+            kernels.tiles(q, sc, a1, a2, _FLAT, res)
+        elif kind == Pattern.TILES:
+            gq = q * sc[:, None]
+            cells = np.floor(gq).astype(np.int64)
+            frac = gq - cells
+            grout = (np.minimum(frac, 1 - frac)[:, :2] < 0.035).any(axis=1)
+            res = a1 * (0.92 + 0.16 * _hash(cells[:, 0], cells[:, 1], cells[:, 2]))[:, None]
+            res[grout] = a2[grout]
+        elif kind == Pattern.PICTURE:
+            res = _picture(q, table.dims[sub], table.motif[sub], a1)
+        elif kind == Pattern.SCREEN:
+            v = q[:, 2] / table.dims[sub, 2] + 0.5
+            u = q[:, 0] / table.dims[sub, 0] + 0.5
+            glare = np.exp(-((u - v * 0.8 - 0.1) ** 2) / 0.01) * 0.25
+            res = _mix(a1, a2, np.clip(v * 0.6 + glare, 0, 1).astype(np.float32))
+        elif kind == Pattern.CLOCK:
+            res = _clock(q, table.dims[sub], table.motif[sub], a1, a2)
+        else:
+            res = a1
+        out[s] = res
+
+
 def albedo(table: MaterialTable, part_idx: Annotated[np.ndarray, "(N,) int"], local: Points,
            textures: bool = True) -> Colors:
     """Albedo at points given in their part's local frame."""
@@ -241,56 +318,6 @@ def albedo(table: MaterialTable, part_idx: Annotated[np.ndarray, "(N,) int"], lo
         t[fine] = (t[fine] + 0.5 * value_noise(g[fine] * 2.0 + 17.0)) / 1.5
     out = c1 + (c2 - c1) * np.where(is_noise, t, np.float32(0.0))[:, None]
     shade = np.where(is_noise, np.float32(1.0), np.float32(0.93) + np.float32(0.14) * t)
-    axis = table.axis.take(part_idx).astype(np.int64)
-    for kind in np.unique(pat):
-        if kind in (Pattern.SOLID, Pattern.NOISE):
-            continue
-        s = np.flatnonzero(pat == kind)
-        q, sc, a1, a2 = local.take(s, axis=0), scale.take(s), c1.take(s, axis=0), c2.take(s, axis=0)
-        if kind in (Pattern.STRIPES, Pattern.WOOD, Pattern.PLANKS):
-            ax = axis[s]
-            rows = np.arange(len(s))
-            along = q[rows, ax]
-            across = q[rows, (ax + 1) % 3]
-        if kind == Pattern.STRIPES:
-            res = _mix(a1, a2, _smoothstep(0.4, 0.6, 0.5 + 0.5 * np.sin(2 * math.pi * along * sc)))
-        elif kind == Pattern.CHECKER:
-            cells = np.floor(q * sc[:, None] + 1e-3).astype(np.int64).sum(axis=1)
-            res = _mix(a1, a2, (cells % 2).astype(np.float32))
-        elif kind == Pattern.WOOD:
-            other = q[rows, (ax + 2) % 3]
-            ring = (across + 0.3 * other) * sc + 2.5 * fbm(q * np.float32(4.0))
-            res = _mix(a1, a2, ((0.5 + 0.5 * np.sin(2 * math.pi * ring)) ** 3).astype(np.float32))
-        elif kind == Pattern.PLANKS:
-            width = 1.0 / sc
-            k = np.floor(across / width)
-            length = 1.3
-            shift = _hash(k, np.zeros_like(k), np.ones_like(k)) * length
-            j = np.floor((along + shift) / length)
-            tint = 0.82 + 0.3 * _hash(k, j, np.full_like(k, 2))
-            grain = fbm(np.stack([along * 1.5, across * 40, k], axis=1))
-            res = _mix(a1, a2, grain * 0.6) * tint[:, None]
-            fa, fb = (across / width) % 1.0, ((along + shift) / length) % 1.0
-            seam = (np.minimum(fa, 1 - fa) < 0.03) | (np.minimum(fb, 1 - fb) < 0.004)
-            res[seam] *= 0.55
-        elif kind == Pattern.TILES:
-            gq = q * sc[:, None]
-            cells = np.floor(gq).astype(np.int64)
-            frac = gq - cells
-            grout = (np.minimum(frac, 1 - frac)[:, :2] < 0.035).any(axis=1)
-            res = a1 * (0.92 + 0.16 * _hash(cells[:, 0], cells[:, 1], cells[:, 2]))[:, None]
-            res[grout] = a2[grout]
-        elif kind == Pattern.PICTURE:
-            res = _picture(q, table.dims[part_idx[s]], table.motif[part_idx[s]], a1)
-        elif kind == Pattern.SCREEN:
-            v = q[:, 2] / table.dims[part_idx[s], 2] + 0.5
-            u = q[:, 0] / table.dims[part_idx[s], 0] + 0.5
-            glare = np.exp(-((u - v * 0.8 - 0.1) ** 2) / 0.01) * 0.25
-            res = _mix(a1, a2, np.clip(v * 0.6 + glare, 0, 1).astype(np.float32))
-        elif kind == Pattern.CLOCK:
-            res = _clock(q, table.dims[part_idx[s]], table.motif[part_idx[s]], a1, a2)
-        else:
-            res = a1
-        out[s] = res
+    apply_patterns(table, part_idx, local, pat, np.unique(pat), out)
     out *= shade[:, None]
     return np.clip(out, 0, 1).astype(np.float32, copy=False)
