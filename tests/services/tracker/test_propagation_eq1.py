@@ -60,8 +60,12 @@ def test_matches_brute_force(h, w, radius, k, n_refs, chunk):
     feats = unit(h, w, 8, gen=gen)
     refs = [(unit(h, w, 8, gen=gen), torch.softmax(torch.randn(h, w, 4, generator=gen), -1)) for _ in range(n_refs)]
     expected = brute_force(feats, refs, radius, k, 0.2)
-    for batch_refs in (False, True):  # one reference per matmul (CPU) or all at once (CUDA)
-        got = propagate_labels(feats, refs, window_radius=radius, topk=k, temperature=0.2, batch_refs=batch_refs, chunk_bytes=chunk)
+    # The torch path with one reference per matmul or all at once (CUDA's way), and the CPU's
+    # numba kernel (services/tracker/propagation_numba.py) where numba is installed.
+    for batch_refs, use_numba in ((False, False), (True, False), (None, True)):
+        got = propagate_labels(
+            feats, refs, window_radius=radius, topk=k, temperature=0.2, batch_refs=batch_refs, chunk_bytes=chunk, use_numba=use_numba
+        )
         assert got.shape == (h, w, 4) and got.dtype == torch.float32
         np.testing.assert_allclose(got.numpy(), expected, atol=1e-5)
 
