@@ -186,17 +186,8 @@ def edge_ends(
     return (lo * voxel_size, hi * voxel_size), (1.0 - t, t)
 
 
-def merge_hypotheses_numpy(
-    ids_a: Annotated[np.ndarray, "(V, K) int32 track id, -1 = empty"],
-    w_a: Annotated[np.ndarray, "(V, K) float"],
-    ids_b: Annotated[np.ndarray, "(V, K) int32 track id, -1 = empty"],
-    w_b: Annotated[np.ndarray, "(V, K) float"],
-    k: int,
-) -> tuple[Annotated[np.ndarray, "(V, k) int32"], Annotated[np.ndarray, "(V, k) float32"]]:
-    """Per row, the union of two hypothesis sets (each track at most once per set), weights of a
-    track in both added, entries of zero weight dropped, the ``k`` heaviest kept in descending
-    weight (ties: the first set's slots, in slot order, then the second's); ``k`` is at most
-    the two sets' slots together."""
+def merge_hypotheses_numpy(ids_a: np.ndarray, w_a: np.ndarray, ids_b: np.ndarray, w_b: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`merge_hypotheses` in numpy (the rule as written, and the fallback without numba)."""
     ids_a = np.where(w_a > 0, ids_a, -1)
     ids_b = np.where(w_b > 0, ids_b, -1)
     w_a = np.where(ids_a >= 0, w_a, 0.0).astype(np.float64)
