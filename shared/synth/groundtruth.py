@@ -170,8 +170,11 @@ class PointChunks:
     with each group's bounding box: a frame skips the groups it cannot see at all (most of a
     wall's or a floor's points are outside any one view)."""
 
+    @property
+    def bounds(self) -> Annotated[np.ndarray, "(objects + 1,) int64: object o's points are order[bounds[o]:bounds[o + 1]]"]:
+        return self.chunk_start[self.object_chunks]
+
     order: Annotated[np.ndarray, "(N,) int64 point indices"]
-    bounds: Annotated[np.ndarray, "(objects + 1,) int64: object o's points are order[bounds[o]:bounds[o + 1]]"]
     object_chunks: Annotated[np.ndarray, "(objects + 1,) int64: object o's chunks are object_chunks[o]:object_chunks[o + 1]"]
     chunk_start: Annotated[np.ndarray, "(C + 1,) int64: chunk c's points are order[chunk_start[c]:chunk_start[c + 1]]"]
     lo: Annotated[np.ndarray, "(C, 3) float64 chunk box"]
@@ -184,7 +187,7 @@ def point_chunks(points: Annotated[np.ndarray, "(N, 3) float32 world"], labels: 
     n = len(points)
     if n == 0:
         empty = np.zeros(n_objects + 1, np.int64)
-        return PointChunks(np.zeros(0, np.int64), empty, empty, np.zeros(1, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
+        return PointChunks(np.zeros(0, np.int64), empty, np.zeros(1, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
     cell = np.floor(points / np.float32(CHUNK_SIZE)).astype(np.int64)
     cell -= cell.min(axis=0)
     span = cell.max(axis=0) + 1
@@ -195,7 +198,7 @@ def point_chunks(points: Annotated[np.ndarray, "(N, 3) float32 world"], labels: 
     chunk_start = np.append(starts, n).astype(np.int64)
     object_chunks = np.searchsorted(labels[order[starts]], np.arange(n_objects + 1)).astype(np.int64)
     grouped = points[order].astype(np.float64)
-    return PointChunks(order.astype(np.int64), chunk_start[object_chunks], object_chunks, chunk_start,
+    return PointChunks(order.astype(np.int64), object_chunks, chunk_start,
                        np.minimum.reduceat(grouped, starts), np.maximum.reduceat(grouped, starts))
 
 
