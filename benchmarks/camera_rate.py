@@ -22,7 +22,8 @@ the robot path) with ``fusion.tsdf.voxel_size`` = ``--voxel`` (default 3 cm). Pa
   on the robot (a keyframe every ``tracker.keyframe_interval`` frames, propagated frames with
   their confidence; the ground-truth tracker's frames are all keyframes, and a keyframe costs
   fusion more). They are then handed in as fast as fusion takes them, with ``tick`` every
-  0.2 s as its node does.
+  0.2 s as its node does. Graph updates run on the map path a live robot uses
+  (``--map-path``, default ``async``: ``fusion.map_path``).
   ``fusion_hz``: frames after the first / seconds from the first frame's ack to the last's.
   ``fusion_frame_ms``: a frame handed to the bus to its ack put (the ack's envelope stamp).
   ``update_lag_s``: per frame, from its ack (the frame is in the map) to the first graph delta
@@ -337,7 +338,7 @@ def tracked_messages(cfg, frames: list, keyframe_vl) -> tuple[list, Any]:
     return out, ends[-1]
 
 
-def run_fusion(seq: Path, voxel: float, n: int, work: Path) -> dict[str, Any]:
+def run_fusion(seq: Path, voxel: float, n: int, work: Path, map_path: str = "async") -> dict[str, Any]:
     from tqdm import tqdm
 
     from services.fusion.core import FusionCore
@@ -350,7 +351,7 @@ def run_fusion(seq: Path, voxel: float, n: int, work: Path) -> dict[str, Any]:
     from shared.messages.rpc import EmbedReply, EmbedRequest
     from shared.runtime.bus import InProcessBus
 
-    cfg = system_config(seq, voxel)
+    cfg = system_config(seq, voxel, [f"fusion.map_path={map_path}"])
     keyframe_vl = build_keyframe_vl(cfg)  # the tracker's keyframe masks; vl/embed for the room labels
     t_prep = time.monotonic()
     messages, end = tracked_messages(cfg, load_frames(seq, n), keyframe_vl)
@@ -419,6 +420,7 @@ def run_fusion(seq: Path, voxel: float, n: int, work: Path) -> dict[str, Any]:
     run = json.loads((out / "run.json").read_text())
     return {
         "input": "the classical tracker session, masks on time, prepared beforehand",
+        "map_path": map_path,
         "frames": len(order),
         "fusion_hz": (len(order) - 1) / span if span > 0 else None,
         **_summary_ms(per_frame[1:], "fusion_frame_ms"),
@@ -570,7 +572,7 @@ def live_rate(seq: Path, voxel: float, bag: Path, frames: int, hz: float, work: 
     from services.bench.rate import figure, stage_drops, stage_reports, start_live_system
 
     shutil.rmtree(work, ignore_errors=True)
-    overrides = {"fusion": {"tsdf": {"voxel_size": voxel}}, "ros2": {"link": {"convention": "rmw_zenoh", "domain_id": 0}}}
+    overrides = {"fusion": {"tsdf": {"voxel_size": voxel}, "map_path": "async"}, "ros2": {"link": {"convention": "rmw_zenoh", "domain_id": 0}}}
     services = [
         {"name": "router"},
         {"name": "keyframe_vl"},
@@ -687,7 +689,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     seq = make_sequence(work, args.resolution, args.walk_frames)
     res["sequence"] = str(seq)
     runners: dict[str, Callable[[], dict[str, Any]]] = {
-        "fusion": lambda: run_fusion(seq, args.voxel, args.frames, work),
+        "fusion": lambda: run_fusion(seq, args.voxel, args.frames, work, args.map_path),
         "tracker": lambda: run_tracker(seq, args.voxel, args.frames),
         "map": lambda: run_map(seq, args.voxel, args.frames, work),
         "live": lambda: run_live(seq, args.voxel, args.frames, args.rates, work),
@@ -712,6 +714,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, metavar="N", help=f"frames per part (default {DEFAULT_FRAMES}; --quick {QUICK_FRAMES})")
     ap.add_argument("--walk-frames", type=int, metavar="N", help="frames the demo walk is rendered in (default the preset's own, 900)")
     ap.add_argument("--parts", type=parse_parts, default=PARTS, metavar="LIST", help=f"comma-separated parts to run (default {','.join(PARTS)})")
+    ap.add_argument("--map-path", choices=["sync", "async"], default="async", help="fusion part: fusion.map_path (default async, a live robot's)")
     ap.add_argument("--rates", type=parse_rates, metavar="HZ,...", help="live camera rates (default 10,15,30; --quick 15)")
     ap.add_argument("--quick", action="store_true", help=f"{QUICK_FRAMES} frames and one live rate")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT, metavar="DIR", help=f"{RESULT} and the work folder camera_rate/ (default benchmarks/out)")

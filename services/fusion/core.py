@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Annotated, Any
 
 import numpy as np
@@ -62,6 +62,29 @@ class CorrectionCounters:
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
+
+
+@dataclass
+class UpdateInput:
+    """What a graph update reads from the frame path, captured at one frame
+    (:meth:`FusionCore.capture_update`): the map path works on this, never on the live state."""
+
+    mesh: HypothesisMesh
+    """The active window's hypothesis mesh."""
+    center: Annotated[np.ndarray, "(3,) float64 m"]
+    """The newest position: the active window's centre."""
+    tracks: dict[int, TrackState]
+    """Copies of the track states (the frame path goes on changing the originals)."""
+    trajectory: Annotated[np.ndarray, "(N, 3) float64 m"]
+    poses: list[np.ndarray]
+    """(7,) pose row of each fused frame."""
+    pose_frames: list[int]
+    views: dict[int, np.ndarray]
+    """Keyframe index -> whole-image embedding."""
+    view_points: dict[int, np.ndarray]
+    """Keyframe index -> (N, 3) world points it shows."""
+    frame_index: int
+    """The newest fused frame: the frame the delta reflects."""
 
 
 @dataclass
@@ -129,6 +152,10 @@ class FusionCore:
         self.updates = 0
         self.last_frame_index = -1
         self.mesh: HypothesisMesh | None = None
+        self.sync_updates = True
+        """True: :meth:`add_frame` updates the graph every ``mesh_every_n_frames`` frames and
+        returns the delta. False (``fusion.map_path: async``): it never does; the map path
+        (:class:`services.fusion.mappath.MapPath`) decides when."""
 
     # ------------------------------------------------------------------ inputs
 
@@ -177,7 +204,7 @@ class FusionCore:
         self.pose_frames.append(int(fr.frame_index))
         self.frames += 1
         self.last_frame_index = fr.frame_index
-        if self.frames % self.cfg.mesh_every_n_frames == 0:
+        if self.sync_updates and self.frames % self.cfg.mesh_every_n_frames == 0:
             return self.update()
         return None
 
@@ -209,16 +236,36 @@ class FusionCore:
 
     def update(self) -> GraphDelta:
         """Mesh, segments, re-identification, places and rooms; the delta to the last version."""
-        mesh = self.tsdf.extract_mesh()
-        self.mesh = mesh
-        center = self.trajectory[-1] if self.trajectory else np.zeros(3)
-        changes = self.segments.update(mesh, self.tracks, window=(center, self.cfg.tsdf.active_window_m))
+        return self.build_update(self.capture_update())
+
+    def capture_update(self) -> UpdateInput:
+        """The frame path's half of an update: the hypothesis mesh of the active window and
+        copies of what the rest reads from the frame path (tracks, trajectory, keyframe views),
+        all as of the newest fused frame. :meth:`build_update` may then run beside later frames
+        (``fusion.map_path: async``, :mod:`services.fusion.mappath`)."""
+        return UpdateInput(
+            mesh=self.tsdf.extract_mesh(),
+            center=self.trajectory[-1].copy() if self.trajectory else np.zeros(3),
+            tracks={tid: replace(st) for tid, st in self.tracks.items()},
+            trajectory=np.stack(self.trajectory) if self.trajectory else np.zeros((0, 3)),
+            poses=list(self.poses), pose_frames=list(self.pose_frames),
+            views=dict(self.views), view_points=dict(self.view_points),
+            frame_index=self.last_frame_index,
+        )  # fmt: skip
+
+    def build_update(self, inp: UpdateInput) -> GraphDelta:
+        """The map path's half: segments and re-identification on ``inp.mesh``, the surface
+        sample, places and rooms, the delta (which reflects frame ``inp.frame_index``). It
+        touches only map-path state (segments, surface, hierarchy, graph), never the TSDF."""
+        mesh = self.mesh = inp.mesh
+        window = (inp.center, self.cfg.tsdf.active_window_m)
+        changes = self.segments.update(mesh, inp.tracks, window=window)
         self.surface.add(mesh.vertices, mesh.vertex_anchors())
         places = rooms = None
         points = self.surface_points()
-        if len(points) and len(self.trajectory):
+        if len(points) and len(inp.trajectory):
             try:
-                h = self.hierarchy.build(points, np.stack(self.trajectory), active=(center, self.cfg.tsdf.active_window_m))
+                h = self.hierarchy.build(points, inp.trajectory, active=window)
                 places, rooms = h.places, h.rooms
                 self.last_hierarchy = h
             except ValueError as exc:
@@ -235,19 +282,19 @@ class FusionCore:
             places=places,
             rooms=rooms,
             mesh=self.mesh_chunk() if with_mesh else None,
-            frame_index=self.last_frame_index,
-            describe_rooms=self._describe_rooms,
+            frame_index=inp.frame_index,
+            describe_rooms=lambda segments, new, previous: self._describe_rooms(segments, new, previous, inp),
         )
 
-    def _view_shares(self, order: list[int]) -> tuple[Annotated[np.ndarray, "(K, R) float64"], Annotated[np.ndarray, "(K, D) float32"]]:
-        """What share of each keyframe view falls in each room of ``order``, and the views."""
+    def _view_shares(self, order: list[int], inp: UpdateInput) -> tuple[Annotated[np.ndarray, "(K, R) float64"], Annotated[np.ndarray, "(K, D) float32"]]:
+        """What share of each keyframe view (as of ``inp``) falls in each room of ``order``, and the views."""
         h = self.last_hierarchy
         none = np.zeros((0, len(order))), np.zeros((0, 0), np.float32)
-        if h is None or not self.views or not order:
+        if h is None or not inp.views or not order:
             return none
-        at = {f: k for k, f in enumerate(self.pose_frames)}
-        frames = [f for f in sorted(self.views) if f in at]
-        dims = {self.views[f].shape[0] for f in frames}
+        at = {f: k for k, f in enumerate(inp.pose_frames)}
+        frames = [f for f in sorted(inp.views) if f in at]
+        dims = {inp.views[f].shape[0] for f in frames}
         if len(dims) > 1:
             log.warning("keyframe views of %s dimensions; room features use none of them", sorted(dims))
             return none
@@ -256,17 +303,17 @@ class FusionCore:
         lookup = RoomLookup(lab, ids, fs.resolution)  # one distance transform for every view
         empty = np.zeros((0, 2), np.float32)
         shares = [
-            view_shares(lab, ids, order, fs.cell_of(self.view_points.get(f, empty)), fs.cell_of(self.poses[at[f]][None, :2])[0], fs.resolution, lookup)
+            view_shares(lab, ids, order, fs.cell_of(inp.view_points.get(f, empty)), fs.cell_of(inp.poses[at[f]][None, :2])[0], fs.resolution, lookup)
             for f in frames
         ]  # fmt: skip
         if not shares:
             return none
-        return np.stack(shares), np.stack([self.views[f] for f in frames])
+        return np.stack(shares), np.stack([inp.views[f] for f in frames])
 
     def _describe_rooms(
-        self, segments: dict[int, SegmentNode], rooms: dict[int, RoomNode], previous: dict[int, RoomNode]
+        self, segments: dict[int, SegmentNode], rooms: dict[int, RoomNode], previous: dict[int, RoomNode], inp: UpdateInput
     ) -> dict[int, RoomNode]:
-        shares, views = self._view_shares(sorted(rooms))
+        shares, views = self._view_shares(sorted(rooms), inp)
         return describe_rooms(rooms, segments, shares, views, self.room_vocabulary, self.cfg.graph.room_view_weight, previous)
 
     def finish(self) -> GraphDelta:

@@ -39,6 +39,7 @@ from services.fusion.durability.delivery import EndWatch, FeatureSerials
 from services.fusion.durability.keeper import MapKeeper
 from services.fusion.durability.reorder import InOrder
 from services.fusion.layers.roomlabels import ROOM_LABELS_TIMEOUT_S, RoomLabelFetch
+from services.fusion.mappath import MapPath, resolve_map_path
 from services.fusion.protocol import FusionCoreLike
 from shared.config.root import TrackGraphConfig
 from shared.config.transport import CodecConfig
@@ -103,6 +104,8 @@ class FusionSession(Session):
         self.in_order = InOrder(cfg.fusion.reorder_wait_s, cfg.fusion.reorder_capacity)
         """The tracker's frames and feature messages put back in the order it sent them."""
         self.corrections = PendingCorrections(core, self.book)
+        self.map_path = MapPath(core, resolve_map_path(cfg), cfg.fusion.mesh_every_n_frames)
+        """Where graph updates run (``fusion.map_path``)."""
         self.disk = MapKeeper(cfg, core, store, self.out, self.book, features=self.features, order=self.in_order, corrections=self.corrections, clock=clock)
         """Resume, journal, snapshots and the final export (nothing without a store)."""
         self.epoch = secrets.randbits(62) if epoch is None else int(epoch)
@@ -196,7 +199,9 @@ class FusionSession(Session):
                 self._last_frame_at = self.clock()
                 if delta is not None:
                     self.deltas.put(delta)
-                self.corrections.apply_due(self.deltas.put)
+                self.map_path.after_frame()
+                self._publish_map_path()
+                self.corrections.apply_due(self.deltas.put, before=self._settle)
                 self.book.work_done(max(self._last_frame_at - t0, 0.0))
                 if not self.disk.replaying and self.disk.due(self.frames, self._last_frame_at):
                     self.save()
@@ -242,13 +247,14 @@ class FusionSession(Session):
         fusion holds and applies it at the same frame."""
         self.disk.append("correction", c)
         self.corrections.pending.append(c)
-        self.corrections.apply_due(self.deltas.put)
+        self.corrections.apply_due(self.deltas.put, before=self._settle)
         self._refresh()
         return LATER  # counted when applied or refused
 
     def _on_snapshot(self, req: SnapshotRequest) -> GraphSnapshot:
-        # under the lock: a snapshot never sees a half-applied frame
+        # under the lock: a snapshot never sees a half-applied frame (nor a half-built update)
         with self.lock:
+            self._settle()
             snap = self.core.snapshot(with_mesh=req.with_mesh or req.whole_map, whole_map=req.whole_map)
         return trim_whole_map(snap, self.cfg.transport.codec) if req.whole_map else snap
 
@@ -262,6 +268,7 @@ class FusionSession(Session):
         """The final graph update out; with a store the whole map saved and exported."""
         if self.finished.is_set():
             return
+        self._settle()
         self.corrections.apply_due(self.deltas.put, final=True)
         self.deltas.put(self.core.finish())
         if self.store is not None:
@@ -275,7 +282,22 @@ class FusionSession(Session):
         """A snapshot on disk (atomic, checksummed); with ``export`` also the mesh, the
         OpenLex3D files and ``run.json`` of ``trackgraph map``."""
         with self.lock:
+            self._settle()
             self.disk.save(self.frames, summary=self._summary if export else None)
+
+    def _publish_map_path(self) -> None:
+        """The map path's finished deltas out, in order; its failed updates counted."""
+        deltas, failed = self.map_path.take()
+        for delta in deltas:
+            self.deltas.put(delta)
+        for _ in range(failed):
+            self.book.error()
+
+    def _settle(self) -> None:
+        """Wait for the map path's running update and publish it: before anything else
+        reads or moves the graph."""
+        self.map_path.join()
+        self._publish_map_path()
 
     def _summary(self, snapshot: GraphSnapshot) -> dict[str, Any]:
         from services.fusion.export import service_summary
@@ -306,6 +328,7 @@ class FusionSession(Session):
         with self.lock:
             try:
                 self._apply_ready(self.in_order.expire(now))
+                self._publish_map_path()
                 self._check_end(now)
                 if self.disk.due(self.frames, now):
                     self.save()
@@ -323,7 +346,7 @@ class FusionSession(Session):
         for name, value in (("frames", self.frames), ("frames_in_map", self.core.frames), ("duplicates", self.duplicates),
                             ("reorder", self.in_order.as_dict()), ("graph_seq", self.core.graph.graph_seq),
                             ("finished", self.finished.is_set()), ("room_labels", self.room_labels.ready),
-                            ("corrections", self.corrections.figure()), ("journal", self.disk.figure())):  # fmt: skip
+                            ("corrections", self.corrections.figure()), ("journal", self.disk.figure()), ("map_path", self.map_path.figure())):  # fmt: skip
             if value is not None:
                 book.figure(name, value)
 
@@ -334,4 +357,5 @@ class FusionSession(Session):
         super().close()
         if save and self.store is not None and self.frames and not self.finished.is_set():
             self.save()
+        self.map_path.close()
         self.disk.close()

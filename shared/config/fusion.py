@@ -198,6 +198,17 @@ class FusionConfig(StrictModel):
     """Places and rooms."""
     mesh_every_n_frames: int = Field(10, ge=1)
     """Marching cubes and the segment update run every N fused frames."""
+    map_path: Literal["auto", "sync", "async"] = "auto"
+    """Not in the paper: where graph updates run (docs/architecture.md, "Frame path and map
+    path"). ``sync``: on the frame path, every ``mesh_every_n_frames`` frames, so updates
+    happen at fixed frames and a replay's map equals the in-process one. ``async``: beside
+    the frame path (:mod:`services.fusion.mappath`): the frame path only captures the mesh
+    and a copy of what the update reads, and a map thread builds segments,
+    re-identification, places, rooms and the delta while later frames are fused; an update
+    starts when the last one is done and ``mesh_every_n_frames`` frames came since, so under
+    load updates come less often instead of holding frames back. ``auto``: ``async`` when
+    ``source.mode`` is ``live`` (a camera), ``sync`` otherwise, so ``trackgraph map`` and a
+    lossless replay run ``sync``; ``deploy/ros2.yaml`` sets ``async`` for a robot's topics."""
     mesh_delta_every_n_updates: int = Field(5, ge=1)
     """Mesh chunks ride in every Nth graph delta; segments ride in every one."""
     snapshot_interval_s: float = Field(30.0, gt=0)

@@ -36,11 +36,14 @@ class PendingCorrections:
     def __len__(self) -> int:
         return len(self.pending)
 
-    def apply_due(self, publish: Callable[[GraphDelta], Any], final: bool = False) -> None:
+    def apply_due(self, publish: Callable[[GraphDelta], Any], final: bool = False, before: Callable[[], Any] | None = None) -> None:
         """Apply every correction that is due (``final``: all of them, at the map's end); each
-        graph update after a move goes to ``publish``."""
+        graph update after a move goes to ``publish``. ``before`` runs first when any is due
+        (the session waits there for the map path's running update)."""
         last = self.core.last_frame_index
         due = [c for c in self.pending if final or c.apply_after_frame is None or last >= c.apply_after_frame]
+        if due and before is not None:
+            before()
         # by identity: models holding arrays do not compare with ==
         self.pending = [c for c in self.pending if all(c is not d for d in due)]
         for c in due:

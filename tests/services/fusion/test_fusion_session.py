@@ -133,7 +133,8 @@ def test_frames_fused_duplicates_skipped_and_every_frame_acked(clock, make_frame
     calm = {"held": 0, "held_most": 0, "skipped": 0, "dropped": 0, "tracker_restarts": 0}
     corrections = {**CorrectionCounters().as_dict(), "pending": 0, "last_error": None}
     assert report.figures == {"frames": 4, "frames_in_map": 4, "duplicates": 2, "reorder": calm, "graph_seq": 2, "finished": False,
-                              "room_labels": False, "corrections": corrections}  # fmt: skip
+                              "room_labels": False, "corrections": corrections,
+                              "map_path": {"mode": "sync", "busy": False, "updates": 0, "failed": 0, "capture_ms": 0.0, "build_ms": 0.0}}  # fmt: skip
     assert report.frames_done == 4 and report.published == {"frame_ack": 6, "graph_delta": 2}
     assert rig.inputs()["tracks_frame"].processed == 6
 
