@@ -271,11 +271,15 @@ def load_frames(seq: Path, n: int) -> list:
     return [reader.frame(i) for i in tqdm(range(n), desc="load frames", unit="frame", disable=None)]
 
 
+SETS: list[str] = []
+"""``--set`` overrides, for every part (the config is ``CONFIG`` with these)."""
+
+
 def system_config(seq: Path, voxel: float, sets: Sequence[str] = ()):
     """The classical config at ``voxel``, with its simulated backends' ground truth at ``seq``."""
     from shared.config import load_config
 
-    return load_config(CONFIG, [f"fusion.tsdf.voxel_size={voxel}", *sets]).with_ground_truth(seq)
+    return load_config(CONFIG, [f"fusion.tsdf.voxel_size={voxel}", *SETS, *sets]).with_ground_truth(seq)
 
 
 def _summary_ms(seconds: Sequence[float], prefix: str) -> dict[str, float | None]:
@@ -539,7 +543,7 @@ def run_tracker(seq: Path, voxel: float, n: int) -> dict[str, Any]:
 def run_map(seq: Path, voxel: float, n: int, work: Path) -> dict[str, Any]:
     out = work / "map"
     cmd = [sys.executable, "-m", "services.cli", "map", str(seq), "--config", "classical", "--set", f"fusion.tsdf.voxel_size={voxel}",
-           "--max-frames", str(n), "--out", str(out), "--json"]  # fmt: skip
+           "--max-frames", str(n), "--out", str(out), "--json", *(a for item in SETS for a in ("--set", item))]  # fmt: skip
     log.info("trackgraph map of %d frames", n)
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, env={**os.environ, "PYTHONUNBUFFERED": "1"}, check=False)
     if proc.returncode != 0:
@@ -566,13 +570,26 @@ def _wait_for(done: Callable[[], bool], timeout: float, what: str, sup) -> None:
         time.sleep(0.2)
 
 
+def _nested_sets(tree: dict[str, Any]) -> dict[str, Any]:
+    """``tree`` with the ``--set`` overrides merged in (dotted keys to nested dicts)."""
+    from shared.config.overrides import parse_set, read_value
+
+    for item in SETS:
+        path, text = parse_set(item)
+        node = tree
+        for key in path[:-1]:
+            node = node.setdefault(key, {})
+        node[path[-1]] = read_value(".".join(path), text)
+    return tree
+
+
 def live_rate(seq: Path, voxel: float, bag: Path, frames: int, hz: float, work: Path) -> dict[str, Any]:
     """One live run: the chain as processes, the bag played at ``hz``, counts from the
     services' status files and fusion's ``run.json``."""
     from services.bench.rate import figure, stage_drops, stage_reports, start_live_system
 
     shutil.rmtree(work, ignore_errors=True)
-    overrides = {"fusion": {"tsdf": {"voxel_size": voxel}, "map_path": "async"}, "ros2": {"link": {"convention": "rmw_zenoh", "domain_id": 0}}}
+    overrides = _nested_sets({"fusion": {"tsdf": {"voxel_size": voxel}, "map_path": "async"}, "ros2": {"link": {"convention": "rmw_zenoh", "domain_id": 0}}})
     services = [
         {"name": "router"},
         {"name": "keyframe_vl"},
@@ -681,6 +698,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "config": str(CONFIG.relative_to(ROOT)),
         "quick": args.quick,
         "parts": list(args.parts),
+        "sets": list(args.set),
         "commit": git_commit(),  # the bench's: "-dirty" with uncommitted changes
         "machine": machine(),
         "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
@@ -714,12 +732,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, metavar="N", help=f"frames per part (default {DEFAULT_FRAMES}; --quick {QUICK_FRAMES})")
     ap.add_argument("--walk-frames", type=int, metavar="N", help="frames the demo walk is rendered in (default the preset's own, 900)")
     ap.add_argument("--parts", type=parse_parts, default=PARTS, metavar="LIST", help=f"comma-separated parts to run (default {','.join(PARTS)})")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a config override for every part (repeatable)")
     ap.add_argument("--map-path", choices=["sync", "async"], default="async", help="fusion part: fusion.map_path (default async, a live robot's)")
     ap.add_argument("--rates", type=parse_rates, metavar="HZ,...", help="live camera rates (default 10,15,30; --quick 15)")
     ap.add_argument("--quick", action="store_true", help=f"{QUICK_FRAMES} frames and one live rate")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT, metavar="DIR", help=f"{RESULT} and the work folder camera_rate/ (default benchmarks/out)")
     ap.add_argument("-v", "--verbose", action="count", default=0)
     args = ap.parse_args(argv)
+    SETS[:] = args.set
     if args.walk_frames is None:
         from shared.synth.config import preset_config
 

@@ -28,6 +28,7 @@ from services.fusion.layers.rooms import Hierarchy, HierarchyBuilder
 from services.fusion.layers.segments import SegmentLayer
 from services.fusion.layers.surface import SurfaceSample
 from services.fusion.types import HypothesisMesh, TrackState
+from services.fusion.volume.cubes import BlockCopy
 from services.fusion.volume.hypotheses import confidence
 from services.fusion.volume.move import warm_up
 from services.fusion.volume.tsdf import HypothesisTSDF
@@ -69,8 +70,11 @@ class UpdateInput:
     """What a graph update reads from the frame path, captured at one frame
     (:meth:`FusionCore.capture_update`): the map path works on this, never on the live state."""
 
-    mesh: HypothesisMesh
-    """The active window's hypothesis mesh."""
+    mesh: HypothesisMesh | None
+    """The active window's hypothesis mesh, or None when ``blocks`` holds what to mesh."""
+    blocks: BlockCopy | None
+    """The active window's blocks, copied: the map path meshes them (numba marching cubes,
+    :mod:`services.fusion.volume.cubes`); None on CUDA, where the frame path meshes."""
     center: Annotated[np.ndarray, "(3,) float64 m"]
     """The newest position: the active window's centre."""
     tracks: dict[int, TrackState]
@@ -239,12 +243,13 @@ class FusionCore:
         return self.build_update(self.capture_update())
 
     def capture_update(self) -> UpdateInput:
-        """The frame path's half of an update: the hypothesis mesh of the active window and
-        copies of what the rest reads from the frame path (tracks, trajectory, keyframe views),
-        all as of the newest fused frame. :meth:`build_update` may then run beside later frames
-        (``fusion.map_path: async``, :mod:`services.fusion.mappath`)."""
+        """The frame path's half of an update: a copy of the active window's blocks (on CUDA
+        their mesh) and copies of what the rest reads from the frame path (tracks, trajectory,
+        keyframe views), all as of the newest fused frame. :meth:`build_update` may then run
+        beside later frames (``fusion.map_path: async``, :mod:`services.fusion.mappath`)."""
+        blocks = self.tsdf.copy_active()
         return UpdateInput(
-            mesh=self.tsdf.extract_mesh(),
+            mesh=self.tsdf.extract_mesh() if blocks is None else None, blocks=blocks,
             center=self.trajectory[-1].copy() if self.trajectory else np.zeros(3),
             tracks={tid: replace(st) for tid, st in self.tracks.items()},
             trajectory=np.stack(self.trajectory) if self.trajectory else np.zeros((0, 3)),
@@ -254,10 +259,11 @@ class FusionCore:
         )  # fmt: skip
 
     def build_update(self, inp: UpdateInput) -> GraphDelta:
-        """The map path's half: segments and re-identification on ``inp.mesh``, the surface
-        sample, places and rooms, the delta (which reflects frame ``inp.frame_index``). It
-        touches only map-path state (segments, surface, hierarchy, graph), never the TSDF."""
-        mesh = self.mesh = inp.mesh
+        """The map path's half: the mesh of ``inp.blocks``, segments and re-identification on
+        it, the surface sample, places and rooms, the delta (which reflects frame
+        ``inp.frame_index``). It touches only map-path state (segments, surface, hierarchy,
+        graph), never the TSDF."""
+        mesh = self.mesh = inp.mesh if inp.mesh is not None else self.tsdf.mesh_of(inp.blocks)
         window = (inp.center, self.cfg.tsdf.active_window_m)
         changes = self.segments.update(mesh, inp.tracks, window=window)
         self.surface.add(mesh.vertices, mesh.vertex_anchors())

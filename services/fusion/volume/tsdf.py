@@ -34,6 +34,8 @@ import numpy as np
 
 from services.fusion.types import HypothesisMesh
 from services.fusion.volume.anchors import anchor_in_place, anchor_rule
+from services.fusion.volume.cubes import BlockCopy, block_copy, hypothesis_mesh
+from services.fusion.volume.cubes import available as cubes_available
 from services.fusion.volume.grid import BlockGrid, resolve_device
 from services.fusion.volume.hypotheses import (
     FrameGeometry,
@@ -299,9 +301,25 @@ class HypothesisTSDF(BlockGrid):
 
     def extract_mesh(self) -> HypothesisMesh:
         """Marching-cubes mesh of the active window with each vertex's colour and hypotheses."""
+        blocks = self.copy_active()
+        if blocks is not None:
+            return self.mesh_of(blocks)
         return extract_hypothesis_mesh(
             self.vbg, self.cfg.voxel_size, self.res, self.K, self.mesh_weight_threshold
         )
+
+    def copy_active(self) -> BlockCopy | None:
+        """The active blocks' arrays, copied (:mod:`services.fusion.volume.cubes`): the frame
+        path's part of a mesh whose marching cubes run elsewhere (:meth:`mesh_of`). None on
+        CUDA or without numba, where Open3D meshes the grid itself."""
+        if self.device_name.startswith("CUDA") or not cubes_available():
+            return None
+        bufs, keys = self._active()
+        return block_copy(keys, self._read_blocks(bufs))
+
+    def mesh_of(self, blocks: BlockCopy) -> HypothesisMesh:
+        """The hypothesis mesh of copied blocks (no grid state read: safe beside the frame path)."""
+        return hypothesis_mesh(blocks, self.cfg.voxel_size, self.K, self.mesh_weight_threshold)
 
     def extract_archived_mesh(self) -> HypothesisMesh:
         """Marching cubes over the archived blocks the active grid does not hold again: the
@@ -317,6 +335,8 @@ class HypothesisTSDF(BlockGrid):
         rows = self.archive.lookup(keys)
         keys, attrs = self.archive.peek(rows)
         keys, attrs = self._archived_now(keys, attrs, self.archive.epochs_of(rows))
+        if cubes_available():
+            return self.mesh_of(block_copy(keys, attrs))
         grid = self._new_grid(len(keys) + 16)
         self._write_blocks(keys, attrs, grid=grid)
         return extract_hypothesis_mesh(grid, self.cfg.voxel_size, self.res, self.K, self.mesh_weight_threshold)
