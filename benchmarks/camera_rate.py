@@ -394,6 +394,10 @@ def run_fusion(seq: Path, voxel: float, n: int, work: Path, map_path: str = "asy
                 session.tick(now)
                 bus.drain()
                 last_tick = now
+        # an update still being built on the map thread goes out at the next tick, as live
+        session.map_path.join()
+        session.tick(time.monotonic())
+        bus.drain()
         updates = len(deltas)
         fed = dict(acked)
         t_end = time.monotonic()

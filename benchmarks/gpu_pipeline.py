@@ -202,7 +202,10 @@ def install_stage_timers(times: StageTimes) -> None:
         return stats
 
     HypothesisTSDF.integrate = tsdf_integrate  # type: ignore[method-assign]
+    # a graph update meshes through one of these: Open3D on the grid (CUDA), or the numba
+    # marching cubes over the copied blocks (CPU; extract_mesh is not called then)
     HypothesisTSDF.extract_mesh = times.timed(HypothesisTSDF.extract_mesh, "mesh")  # type: ignore[method-assign]
+    HypothesisTSDF.mesh_of = times.timed(HypothesisTSDF.mesh_of, "mesh")  # type: ignore[method-assign]
     SegmentLayer.update = times.timed(SegmentLayer.update, "segments")  # type: ignore[method-assign]
     FusionCore.update = times.timed(FusionCore.update, "graph_update")  # type: ignore[method-assign]
 

@@ -29,6 +29,7 @@ from services.fusion.layers.segments import SegmentLayer
 from services.fusion.layers.surface import SurfaceSample
 from services.fusion.types import HypothesisMesh, TrackState
 from services.fusion.volume.cubes import BlockCopy
+from services.fusion.volume.cubes import warm_up as warm_cubes
 from services.fusion.volume.hypotheses import confidence
 from services.fusion.volume.move import warm_up
 from services.fusion.volume.tsdf import HypothesisTSDF
@@ -145,6 +146,7 @@ class FusionCore:
         """Raw and corrected pose of every fused frame (:mod:`services.fusion.corrections.poses`)."""
         self.tsdf.epoch_motion = self.book.epoch_motion
         warm_up()  # the voxel-moving kernels, so a first correction is not slower than the next
+        warm_cubes()  # and marching cubes, so the first graph update is not
         self._moved: set[int] = set()
         """Segments a correction moved, reported changed by the next update."""
         self.corrections = CorrectionCounters()

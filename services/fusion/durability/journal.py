@@ -75,7 +75,10 @@ FIRST = "000000"
 _NAME = re.compile(r"^(\d{6,})\.wal$")
 
 # Lossless, and as large as the process's own data gets: the wire's limits are for strangers.
-_CODEC = CodecConfig(rgb="raw", depth="zstd", labels="zlib", masks="rle", max_payload_bytes=2**33,
+# Label maps go raw into the record's zstd: long runs of one track id cost zstd 0.5 ms where
+# zlib took 8 ms (1200x680), and the record comes out smaller (1.36 MB against 1.39 MB).
+# Records written with zlib labels still replay: every array names its own encoding.
+_CODEC = CodecConfig(rgb="raw", depth="zstd", labels="raw", masks="rle", max_payload_bytes=2**33,
                      max_array_bytes=2**32, max_items=50_000_000, max_string_bytes=2**26, max_image_pixels=2**30)  # fmt: skip
 
 

@@ -345,3 +345,23 @@ def hypothesis_mesh(blocks: BlockCopy, voxel_size: float, k: int, weight_thresho
         vertices=np.ascontiguousarray(pos[perm]), colors=np.ascontiguousarray(col[perm]), faces=faces,
         hyp_ids=hyp_ids, hyp_weights=hyp_weights, anchors=anc[perm],
     )  # fmt: skip
+
+
+_WARM = False
+
+
+def warm_up() -> None:
+    """Load (or compile) the kernels once per process, on two small blocks with a surface
+    between them: the first graph update would otherwise pay for it on the map thread."""
+    global _WARM
+    if _WARM or numba is None:
+        return
+    res, k = 2, 2
+    tsdf = np.full((2, res, res, res), 0.5, np.float32)
+    tsdf[0] = -0.5
+    shape = tsdf.shape
+    blocks = BlockCopy(keys=np.array([[0, 0, 0], [1, 0, 0]], np.int32), tsdf=tsdf, weight=np.full(shape, 2.0, np.float32),
+                       color=np.zeros((*shape, 3), np.float32), hyp_id=np.ones((*shape, k), np.int32),
+                       hyp_w=np.ones((*shape, k), np.float32), anchor=np.zeros(shape, np.int32))  # fmt: skip
+    hypothesis_mesh(blocks, 0.1, k, 1.0)
+    _WARM = True
