@@ -93,9 +93,15 @@ class MapPath:
         if self._thread is None or self._busy or self.core.frames - self._captured_at < self.every_n:
             return
         t0 = time.perf_counter()
-        inp = self.core.capture_update()
-        self.capture_s = time.perf_counter() - t0
         self._captured_at = self.core.frames
+        try:
+            inp = self.core.capture_update()
+        except Exception:  # noqa: BLE001 - the frame is fused; the next capture tries again
+            log.exception("fusion: capturing the graph update at frame %d failed", self.core.frames)
+            with self._cond:
+                self.failed += 1
+            return
+        self.capture_s = time.perf_counter() - t0
         with self._cond:
             self._job, self._busy = inp, True
             self._cond.notify_all()

@@ -111,6 +111,31 @@ def test_a_failed_update_is_counted_and_the_next_one_runs(clock, make_frame):
     s.close(save=False)
 
 
+def test_a_failed_capture_leaves_the_frame_fused_and_is_counted(clock, make_frame):
+    core = GatedCore()
+    core.gate.set()
+    calls = []
+
+    def capture():
+        calls.append(core.last_frame_index)
+        if len(calls) == 1:
+            raise MemoryError("no room for the copy")
+        return SimpleNamespace(frame_index=core.last_frame_index)
+
+    core.capture_update = capture
+    rig = Rig(clock, core=core, config=ASYNC)
+    s = rig.session
+    for i in range(4):
+        rig.frame(make_frame, i)
+    _wait_idle(s)
+    rig.tick(0.2)
+    assert rig.acks == [0, 1, 2, 3] and s.book.report().inputs  # every frame fused and acked
+    assert rig.inputs()["tracks_frame"].rejected == 0
+    assert calls == [1, 3] and [d.frame_index for d in rig.deltas] == [3]
+    assert s.map_path.failed == 1 and s.book.report().errors == 1
+    s.close(save=False)
+
+
 def test_snapshots_corrections_and_the_end_wait_for_the_running_update(clock, make_frame):
     core = GatedCore()
     rig = Rig(clock, core=core, config=ASYNC)
