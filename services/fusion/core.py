@@ -31,6 +31,8 @@ from services.fusion.types import HypothesisMesh, TrackState
 from services.fusion.volume.cubes import BlockCopy
 from services.fusion.volume.cubes import warm_up as warm_cubes
 from services.fusion.volume.hypotheses import confidence
+from services.fusion.volume.incremental import BlockUpdate
+from services.fusion.volume.incremental import warm_up as warm_incremental
 from services.fusion.volume.move import warm_up
 from services.fusion.volume.tsdf import HypothesisTSDF
 from shared.config.fusion import FusionConfig
@@ -73,9 +75,11 @@ class UpdateInput:
 
     mesh: HypothesisMesh | None
     """The active window's hypothesis mesh, or None when ``blocks`` holds what to mesh."""
-    blocks: BlockCopy | None
+    blocks: BlockCopy | BlockUpdate | None
     """The active window's blocks, copied: the map path meshes them (numba marching cubes,
-    :mod:`services.fusion.volume.cubes`); None on CUDA, where the frame path meshes."""
+    :mod:`services.fusion.volume.cubes`), or with ``fusion.incremental_mesh`` those whose
+    part of the mesh changed (:mod:`services.fusion.volume.incremental`); None on CUDA,
+    where the frame path meshes."""
     center: Annotated[np.ndarray, "(3,) float64 m"]
     """The newest position: the active window's centre."""
     tracks: dict[int, TrackState]
@@ -147,6 +151,8 @@ class FusionCore:
         self.tsdf.epoch_motion = self.book.epoch_motion
         warm_up()  # the voxel-moving kernels, so a first correction is not slower than the next
         warm_cubes()  # and marching cubes, so the first graph update is not
+        if cfg.incremental_mesh:
+            warm_incremental()
         self._moved: set[int] = set()
         """Segments a correction moved, reported changed by the next update."""
         self.corrections = CorrectionCounters()
@@ -249,7 +255,7 @@ class FusionCore:
         their mesh) and copies of what the rest reads from the frame path (tracks, trajectory,
         keyframe views), all as of the newest fused frame. :meth:`build_update` may then run
         beside later frames (``fusion.map_path: async``, :mod:`services.fusion.mappath`)."""
-        blocks = self.tsdf.copy_active()
+        blocks = self.tsdf.copy_changed() if self.cfg.incremental_mesh else self.tsdf.copy_active()
         return UpdateInput(
             mesh=self.tsdf.extract_mesh() if blocks is None else None, blocks=blocks,
             center=self.trajectory[-1].copy() if self.trajectory else np.zeros(3),
@@ -265,7 +271,13 @@ class FusionCore:
         it, the surface sample, places and rooms, the delta (which reflects frame
         ``inp.frame_index``). It touches only map-path state (segments, surface, hierarchy,
         graph), never the TSDF."""
-        mesh = self.mesh = inp.mesh if inp.mesh is not None else self.tsdf.mesh_of(inp.blocks)
+        if inp.mesh is not None:
+            mesh = inp.mesh
+        elif isinstance(inp.blocks, BlockUpdate):
+            mesh = self.tsdf.mesh_of_update(inp.blocks)
+        else:
+            mesh = self.tsdf.mesh_of(inp.blocks)
+        self.mesh = mesh
         window = (inp.center, self.cfg.tsdf.active_window_m)
         changes = self.segments.update(mesh, inp.tracks, window=window)
         self.surface.add(mesh.vertices, mesh.vertex_anchors())

@@ -167,12 +167,15 @@ if numba is not None:
         return lut[bx - lo[0], by - lo[1], bz - lo[2]], x, y, z
 
     @numba.njit(cache=True, nogil=True)
-    def _cases(keys, tsdf, weight, thr, res, lut, lo, cubes, cases):  # pragma: no cover - compiled
-        """The cubes with a surface: their first voxels (flat, into ``cubes``) and cases; the
-        count. A cube counts when all its eight voxels have weight above ``thr``."""
+    def _cases(keys, tsdf, weight, thr, res, lut, lo, scan, cubes, cases):  # pragma: no cover - compiled
+        """The cubes with a surface whose first voxel lies in a block with ``scan`` set: their
+        first voxels (flat, into ``cubes``, in block order) and cases; the count. A cube counts
+        when all its eight voxels have weight above ``thr``."""
         n = 0
         edge = res - 1
         for b in range(keys.shape[0]):
+            if not scan[b]:
+                continue
             for z in range(res):
                 for y in range(res):
                     for x in range(res):
@@ -311,7 +314,8 @@ def march(
     lut, lo = _block_lut(keys)
     cubes = np.empty(n * res**3, np.int64)
     cases = np.empty(n * res**3, np.uint8)
-    m = _cases(keys, blocks.tsdf, blocks.weight, np.float32(weight_threshold), res, lut, lo, cubes, cases)
+    scan = np.ones(n, np.bool_)
+    m = _cases(keys, blocks.tsdf, blocks.weight, np.float32(weight_threshold), res, lut, lo, scan, cubes, cases)
     cubes, cases = cubes[:m], cases[:m]
     index = np.full((n, res, res, res, 3), -1, np.int32)
     owners = _number_edges(keys, res, lut, lo, cubes, cases, bits, index)
@@ -324,11 +328,13 @@ def march(
 def block_copy(keys: Annotated[np.ndarray, "(B, 3) int32"], attrs: dict[str, np.ndarray]) -> BlockCopy:
     """A :class:`BlockCopy` of blocks read off a grid or the archive (attribute arrays of
     shape (B, r, r, r, C), as ``BlockGrid._read_blocks`` and ``BlockArchive.peek`` give them)."""
+    def one(a: np.ndarray) -> np.ndarray:  # (B, r, r, r, 1) -> (B, r, r, r): a view when contiguous
+        return np.ascontiguousarray(np.asarray(a).reshape(a.shape[:-1]))
+
     return BlockCopy(
-        keys=np.ascontiguousarray(keys, np.int32), tsdf=np.ascontiguousarray(attrs["tsdf"][..., 0]),
-        weight=np.ascontiguousarray(attrs["weight"][..., 0]), color=np.ascontiguousarray(attrs["color"]),
-        hyp_id=np.ascontiguousarray(attrs["hyp_id"]), hyp_w=np.ascontiguousarray(attrs["hyp_w"]),
-        anchor=np.ascontiguousarray(attrs["anchor"][..., 0]),
+        keys=np.ascontiguousarray(keys, np.int32), tsdf=one(attrs["tsdf"]), weight=one(attrs["weight"]),
+        color=np.ascontiguousarray(attrs["color"]), hyp_id=np.ascontiguousarray(attrs["hyp_id"]),
+        hyp_w=np.ascontiguousarray(attrs["hyp_w"]), anchor=one(attrs["anchor"]),
     )  # fmt: skip
 
 

@@ -94,6 +94,24 @@ class BlockGrid:
         (:meth:`HypothesisTSDF.extract_archived_mesh`)."""
         self.epoch_motion: Callable[[int], Motion] | None = None
         """From the estimates of an epoch to the current ones (set by the fusion core)."""
+        self.track_writes = False
+        """Note the blocks written (:meth:`touched`), for an incremental mesh; set by its user."""
+        self._touched: list[np.ndarray] = []
+        self._touched_all = True  # a new grid: nothing meshed from it yet
+
+    def _touch(self, keys: Annotated[np.ndarray, "(N, 3) int block keys"]) -> None:
+        if not self.track_writes or len(keys) == 0:
+            return
+        self._touched.append(pack_keys(keys))
+        if len(self._touched) > 64:  # a long gap between meshes: keep the log short
+            self._touched = [np.unique(np.concatenate(self._touched))]
+
+    def touched(self) -> Annotated[np.ndarray, "(T,) int64 packed keys"] | None:
+        """The blocks written, created or dropped since the last call (packed keys, sorted), and
+        a fresh log; None when every block counts as written (a new or reloaded grid)."""
+        out = None if self._touched_all else (np.unique(np.concatenate(self._touched)) if self._touched else np.zeros(0, np.int64))
+        self._touched, self._touched_all = [], False
+        return out
 
     # ---------------------------------------------------------------------------------------
     # grid plumbing
@@ -149,6 +167,8 @@ class BlockGrid:
             arr[index_like(arr, bufs)] = like(
                 arr, np.asarray(attrs[name], dtype=self._layout[name][0])
             )
+        if grid is None:
+            self._touch(keys)
 
     def _erase_blocks(self, bufs: np.ndarray, keys: np.ndarray) -> None:
         # Open3D hands a freed buffer to the next new block without clearing it
@@ -158,6 +178,7 @@ class BlockGrid:
         self.vbg.hashmap().erase(
             self._o3c.Tensor(np.ascontiguousarray(keys, np.int32)).to(self._dev)
         )
+        self._touch(keys)
 
     @property
     def active_blocks(self) -> int:

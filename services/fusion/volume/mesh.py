@@ -103,13 +103,21 @@ def gather_rows(
 
 
 def canonical_order(
-    vertices: Annotated[np.ndarray, "(V, 3) float32"], faces: Annotated[np.ndarray, "(F, 3) int"]
+    vertices: Annotated[np.ndarray, "(V, 3) float32"],
+    faces: Annotated[np.ndarray, "(F, 3) int"],
+    tiebreak: tuple[Annotated[np.ndarray, "(V,) int"], ...] = (),
 ) -> tuple[
     Annotated[np.ndarray, "(V,) int64 new -> old vertex"], Annotated[np.ndarray, "(F, 3) int32"]
 ]:
     """A vertex order by position (x, then y, then z) and the faces renumbered, each rotated to
-    start at its smallest index (winding kept) and sorted."""
+    start at its smallest index (winding kept) and sorted. Vertices at the same position (a
+    zero crossing exactly on a voxel, where up to six edges meet) keep their input order, or
+    follow ``tiebreak`` (keys in order of precedence) where given."""
     perm = np.lexsort((vertices[:, 2], vertices[:, 1], vertices[:, 0]))
+    if tiebreak and len(perm) > 1:
+        v = vertices[perm]
+        if np.any(np.all(v[1:] == v[:-1], axis=1)):  # rare: sort again with the tiebreak keys
+            perm = np.lexsort((*tiebreak[::-1], vertices[:, 2], vertices[:, 1], vertices[:, 0]))
     inv = np.empty(len(perm), np.int64)
     inv[perm] = np.arange(len(perm))
     f = inv[faces]

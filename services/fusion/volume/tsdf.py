@@ -45,6 +45,7 @@ from services.fusion.volume.hypotheses import (
     gamma_table,
     numba_available,
 )
+from services.fusion.volume.incremental import BlockUpdate, MeshCache, changed_rows
 from services.fusion.volume.mesh import (
     attribute_array,
     extract_hypothesis_mesh,
@@ -123,6 +124,9 @@ class HypothesisTSDF(BlockGrid):
         }  # fmt: skip
         super().__init__(cfg, device_name, layout)
         self.frames = 0
+        self.mesh_cache = MeshCache(self.K)
+        """The map path's pieces of the mesh (:meth:`mesh_of_update`)."""
+        self._mesh_seq = 0  # captures by copy_changed
 
     def _hyp_views(self) -> tuple[Any, Any]:
         """(capacity * res^3, K) views of hyp_id and hyp_w, re-read each frame because a grid
@@ -209,6 +213,7 @@ class HypothesisTSDF(BlockGrid):
         before = self._weights_of(bc)
         self.vbg.integrate(bc, dimg, cimg, intr, extr, 1.0, cfg.depth_max, trunc)
         t_tsdf += time.perf_counter() - t0
+        self._touch(bc_np)
 
         t0 = time.perf_counter()
         bufs, found = self.vbg.hashmap().find(bc)
@@ -317,6 +322,31 @@ class HypothesisTSDF(BlockGrid):
         bufs, keys = self._active()
         return block_copy(keys, self._read_blocks(bufs))
 
+    def copy_changed(self) -> BlockUpdate | None:
+        """The frame path's part of an incremental mesh (:mod:`services.fusion.volume.incremental`):
+        a copy of the blocks whose pieces changed since the last call and the blocks above
+        them (all active blocks the first time, after a reload, or when the last update was
+        not applied). None on CUDA or without numba, as :meth:`copy_active`."""
+        if self.device_name.startswith("CUDA") or not cubes_available():
+            return None
+        self.track_writes = True
+        bufs, keys = self._active()
+        packed = pack_keys(keys) if len(keys) else np.zeros(0, np.int64)
+        touched = self.touched()
+        full = touched is None or self.mesh_cache.seq != self._mesh_seq
+        if full:
+            rows, redo = np.arange(len(keys)), np.ones(len(keys), bool)
+        else:
+            rows, redo = changed_rows(packed, touched)
+        self._mesh_seq += 1
+        return BlockUpdate(blocks=block_copy(keys[rows], self._read_blocks(bufs[rows])), redo=redo, active=packed,
+                           full=full, seq=self._mesh_seq)  # fmt: skip
+
+    def mesh_of_update(self, update: BlockUpdate) -> HypothesisMesh:
+        """The mesh of the active window after ``update``: its pieces marched, the others kept
+        (the map path's part; reads no grid state)."""
+        return self.mesh_cache.apply(update, self.cfg.voxel_size, self.mesh_weight_threshold)
+
     def mesh_of(self, blocks: BlockCopy) -> HypothesisMesh:
         """The hypothesis mesh of copied blocks (no grid state read: safe beside the frame path)."""
         return hypothesis_mesh(blocks, self.cfg.voxel_size, self.K, self.mesh_weight_threshold)
@@ -405,6 +435,7 @@ class HypothesisTSDF(BlockGrid):
         keys = np.asarray(state["keys"], np.int32).reshape(-1, 3)
         # a quarter to spare: a grid loaded full rehashes (copies every block) on the first new one
         self.vbg = self._new_grid(max(self.cfg.initial_blocks, len(keys) + len(keys) // 4))
+        self._touched, self._touched_all = [], True
         self._write_blocks(keys, {name: state[name] for name in self._layout})
         self.archive.load_state_dict(state)
         self.frames = int(state.get("frames", 0))
