@@ -102,7 +102,7 @@ from services.tracker.propagation import (
     masks_to_soft,
     propagate_with_config,
     upsample_confidence,
-    upsample_labels,
+    upsample_ids,
 )
 from services.tracker.tracks import TrackBook
 from shared.config.tracker import TrackerConfig
@@ -200,11 +200,11 @@ class TrackerCore:
         st = self.history[-1]
         confidence = None
         with cpu_threads(st.features):
-            labels = self._labels(st)
+            labels, present = self._labels_and_ids(st)
             if st.labels is None and st.soft is not None:
                 confidence = upsample_confidence(st.soft, *labels.shape)
         obs = []
-        for tid in _ids_present(labels):
+        for tid in present:
             track = self.book.tracks[int(tid)]
             obs.append(
                 TrackObservation(
@@ -447,12 +447,17 @@ class TrackerCore:
         return propagate_with_config(st.features, refs, self.cfg.propagation)
 
     def _labels(self, st: FrameState) -> np.ndarray:
+        return self._labels_and_ids(st)[0]
+
+    def _labels_and_ids(self, st: FrameState) -> tuple[Annotated[np.ndarray, "(H, W) int32 track ids"], list[int]]:
+        """The frame's track id per pixel (its keyframe labels, or its propagated
+        distributions upsampled) and the ids in it, ascending."""
         H, W = st.frame.depth.shape
         if st.labels is not None:
-            return st.labels
+            return st.labels, _ids_present(st.labels)
         if st.soft is None:
-            return np.full((H, W), -1, np.int32)
-        return slots_to_ids(upsample_labels(st.soft, H, W).cpu().numpy(), self.epoch_slots[st.epoch])
+            return np.full((H, W), -1, np.int32), []
+        return upsample_ids(st.soft, H, W, self.epoch_slots[st.epoch])
 
     def _predicted_labels(self, st: FrameState, H: int, W: int) -> Annotated[np.ndarray, "(H, W) int32 track ids"]:
         """Where the active tracks are predicted at keyframe ``st``: propagated there (eq. 1),
@@ -508,11 +513,6 @@ def slot_image(labels: Annotated[np.ndarray, "(H, W) int32 track ids"], slots: l
     pos = np.clip(pos, 0, len(ids) - 1)
     hit = ids[order][pos] == labels
     return np.where(hit, order[pos] + 1, 0).astype(np.int64)
-
-
-def slots_to_ids(slot_img: np.ndarray, slots: list[int]) -> Annotated[np.ndarray, "(H, W) int32"]:
-    lut = np.asarray([-1, *slots], np.int32)
-    return lut[slot_img]
 
 
 def _ids_present(labels: Annotated[np.ndarray, "(H, W) int track id per pixel, -1 = none"]) -> list[int]:

@@ -32,11 +32,13 @@ except ImportError:  # the torch path does the same, slower
 if numba is not None:
 
     @numba.njit(cache=True, nogil=True, parallel=True)
-    def upsample_cells(y, peak, r0, r1, fy, gy, row_start, x0, x1, fx, gx, col_start, out):  # pragma: no cover - compiled
-        """``out[Y, X]``: the argmax of the bilinear mix of ``y`` (h, w, C) at output pixel
-        (Y, X), with row taps ``r0, r1`` weighted ``gy = 1 - fy, fy`` and column taps ``x0,
-        x1`` weighted ``gx = 1 - fx, fx``. ``row_start[i]:row_start[i + 1]`` are the output
-        rows whose first tap is source row i (taps are non-decreasing), the same for columns."""
+    def upsample_cells(y, peak, r0, r1, fy, gy, row_start, x0, x1, fx, gx, col_start, lut, out, seen):  # pragma: no cover - compiled
+        """``out[Y, X]``: ``lut`` of the argmax of the bilinear mix of ``y`` (h, w, C) at output
+        pixel (Y, X), with row taps ``r0, r1`` weighted ``gy = 1 - fy, fy`` and column taps
+        ``x0, x1`` weighted ``gx = 1 - fx, fx``. ``row_start[i]:row_start[i + 1]`` are the output
+        rows whose first tap is source row i (taps are non-decreasing), the same for columns.
+        ``seen[i, c]`` is set where argmax c lands in those rows (the slots present, without a
+        second pass over the image)."""
         h, w, n_slots = y.shape
         for i in numba.prange(h):
             ya, yb = row_start[i], row_start[i + 1]
@@ -51,9 +53,11 @@ if numba is not None:
                 ca, cb = x0[xa], x1[xa]
                 p = peak[ra, ca]
                 if p == peak[ra, cb] and p == peak[rb, ca] and p == peak[rb, cb]:
+                    v = lut[p]
                     for Y in range(ya, yb):
                         for X in range(xa, xb):
-                            out[Y, X] = p
+                            out[Y, X] = v
+                    seen[i, p] = 1
                     continue
                 n = 0
                 for c in range(n_slots):
@@ -74,7 +78,8 @@ if numba is not None:
                             if v > best:
                                 best = v
                                 arg = c
-                        out[Y, X] = arg
+                        out[Y, X] = lut[arg]
+                        seen[i, arg] = 1
 
     @numba.njit(cache=True, nogil=True, fastmath={"contract"})
     def bilinear_taps(out_len, in_len):  # pragma: no cover - compiled
@@ -115,14 +120,19 @@ if numba is not None:
 
 
 def upsample_numba(
-    y: np.ndarray, peak: np.ndarray, rows: tuple[np.ndarray, ...], cols: tuple[np.ndarray, ...], height: int, width: int
-) -> np.ndarray:
-    """``(H, W) int32`` slots; ``rows`` and ``cols`` are the taps (i0, i1, f, 1 - f) of
-    :func:`services.tracker.propagation._linear_taps`, as numpy arrays."""
+    y: np.ndarray, peak: np.ndarray, rows: tuple[np.ndarray, ...], cols: tuple[np.ndarray, ...], height: int, width: int,
+    lut: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(H, W) int32`` slots, or ``lut[slot]`` with ``lut`` ((C,) int32, e.g. slot -> track
+    id), and which slots it holds ((C,) bool); ``rows`` and ``cols`` are the taps (i0, i1, f,
+    1 - f) of :func:`services.tracker.propagation._linear_taps`, as numpy arrays."""
     r0, r1, fy, gy = rows
     x0, x1, fx, gx = cols
     row_start = np.searchsorted(r0, np.arange(y.shape[0] + 1)).astype(np.int64)
     col_start = np.searchsorted(x0, np.arange(y.shape[1] + 1)).astype(np.int64)
+    if lut is None:
+        lut = np.arange(y.shape[2], dtype=np.int32)
     out = np.empty((height, width), np.int32)
-    upsample_cells(y, peak, r0, r1, fy, gy, row_start, x0, x1, fx, gx, col_start, out)
-    return out
+    seen = np.zeros((y.shape[0], y.shape[2]), np.uint8)
+    upsample_cells(y, peak, r0, r1, fy, gy, row_start, x0, x1, fx, gx, col_start, np.ascontiguousarray(lut, np.int32), out, seen)
+    return out, seen.any(axis=0)

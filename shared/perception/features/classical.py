@@ -29,6 +29,7 @@ import numpy as np
 import torch
 from PIL import Image
 
+from shared.perception.features import classical_numba
 from shared.perception.features.base import PatchGridMixin
 
 N_BINS = 9
@@ -78,6 +79,10 @@ _F_LUT = np.where(_t > 0.008856, np.cbrt(_t), 7.787 * _t + 16.0 / 116.0).astype(
 del _t
 
 
+_NUMBA_TABLES = (_LINEAR_LUT, (_RGB_TO_XYZ * np.float32((_F_LUT_SIZE - 1) / _F_LUT_MAX)).astype(np.float32), _F_LUT)
+"""The tables of :func:`_lab` for the numba kernels (the XYZ rows scaled as it scales them)."""
+
+
 def _lab(rgb: np.ndarray) -> np.ndarray:
     """(3, H, W) float32 CIELAB (D65) of an (H, W, 3) uint8 sRGB image."""
     lin = _LINEAR_LUT[rgb]
@@ -111,10 +116,15 @@ class ClassicalFeatures(PatchGridMixin):
     preset, prototype cosines of one wall seen from two sides went as low as -0.6 with it, and
     IDF1 rose from 0.64 to 0.70 without it."""
 
-    def __init__(self, short_side: int, patch_size: int, device: str | torch.device = "cpu"):
+    def __init__(self, short_side: int, patch_size: int, device: str | torch.device = "cpu", use_numba: bool | None = None):
+        """``use_numba``: the per-pixel passes in numba kernels (the same features, 3x faster;
+        :mod:`shared.perception.features.classical_numba`); None: where numba is installed."""
         self.short_side = short_side
         self.patch_size = patch_size
         self.device = torch.device(device)
+        self.use_numba = classical_numba.available() if use_numba is None else bool(use_numba)
+        if self.use_numba and not classical_numba.available():
+            raise RuntimeError("use_numba needs numba (the fusion extra)")
         self._bin_base: dict[tuple[int, int], np.ndarray] = {}
 
     def _pixel_patch_base(self, height: int, width: int) -> np.ndarray:
@@ -128,9 +138,13 @@ class ClassicalFeatures(PatchGridMixin):
         return self._bin_base[key]
 
     def _colour(self, lab: np.ndarray) -> np.ndarray:
+        return self._colour_of(_pool_sum(lab, self.patch_size), _pool_sum(lab * lab, self.patch_size))
+
+    def _colour_of(self, total: np.ndarray, total_sq: np.ndarray) -> np.ndarray:
+        """The colour block from each patch's CIELAB sums and sums of squares (3, h, w)."""
         area = float(self.patch_size**2)
-        mean = _pool_sum(lab, self.patch_size) / area
-        sq = _pool_sum(lab * lab, self.patch_size) / area
+        mean = total / area
+        sq = total_sq / area
         std = np.sqrt(np.maximum(sq - mean * mean, 0.0))
         offset = np.array([50.0, 0.0, 0.0], np.float32)[:, None, None]
         # Chroma weighs more than lightness: shading changes L along a surface, not a and b.
@@ -154,40 +168,55 @@ class ClassicalFeatures(PatchGridMixin):
         n = h * w * N_BINS
         hist = np.bincount(base + b0, weights=mag * (1.0 - frac), minlength=n)
         hist += np.bincount(base + b1, weights=mag * frac, minlength=n)
-        hist = hist.astype(np.float32).reshape(h, w, N_BINS).transpose(2, 0, 1)
+        return self._texture_of(hist.reshape(h, w, N_BINS), _pool_sum(mag.reshape(lightness.shape), p))
+
+    def _texture_of(self, hist: np.ndarray, energy: np.ndarray) -> np.ndarray:
+        """The texture block from each patch's soft orientation histogram of gradient
+        magnitude ((h, w, bins) float64) and summed magnitude ((h, w) float32)."""
+        p = self.patch_size
+        hist = hist.astype(np.float32).transpose(2, 0, 1)
         # The floor is in the histogram's units: gradient magnitude summed over the patch.
         norm = np.sqrt((hist * hist).sum(0, keepdims=True) + (GRAD_FLOOR * p * p / 3.0) ** 2)
         hist = hist / norm
         hist = hist - hist.mean(0, keepdims=True)
-        energy = np.tanh(_pool_sum(mag.reshape(lightness.shape), p) / (p * p * 4.0 * GRAD_FLOOR))
+        energy = np.tanh(energy / (p * p * 4.0 * GRAD_FLOOR))
         return np.concatenate([hist * 1.5, energy[None]])
 
     def _depth(self, depth: np.ndarray | None, h: int, w: int) -> np.ndarray:
         if depth is None:
             return np.zeros((DEPTH_DIM, h, w), np.float32)
         p = self.patch_size
-        area = float(p * p)
         valid = (depth > 0) & np.isfinite(depth)
         z = np.where(valid, depth, 0.0).astype(np.float32)
         vf = valid.astype(np.float32)
-        count = _pool_sum(vf, p)
-        has = count >= MIN_DEPTH_COVER * area
-        if not has.any():
-            return np.zeros((DEPTH_DIM, h, w), np.float32)
-        safe = np.maximum(count, 1.0)
-        mean = _pool_sum(z, p) / safe
-        sq = _pool_sum(z * z, p) / safe
-        spread = np.sqrt(np.maximum(sq - mean * mean, 0.0)) / np.maximum(mean, 1e-6)
-        rel = np.clip(np.log(np.maximum(mean, 1e-6) / np.median(mean[has])), -2.0, 2.0)
-
         gx, gy = _shift_diffs(z)
         inv = 1.0 / np.maximum(z, 1e-6)
         # A central difference needs the pixel and its four neighbours to be valid.
         vp = np.pad(vf, 1, mode="edge")
         gvalid = vf * vp[1:-1, 2:] * vp[1:-1, :-2] * vp[2:, 1:-1] * vp[:-2, 1:-1]
-        gcount = np.maximum(_pool_sum(gvalid, p), 1.0)
-        gxm = _pool_sum(gx * inv * gvalid, p) / gcount
-        gym = _pool_sum(gy * inv * gvalid, p) / gcount
+        sums = (_pool_sum(vf, p), _pool_sum(z, p), _pool_sum(z * z, p), _pool_sum(gvalid, p),
+                _pool_sum(gx * inv * gvalid, p), _pool_sum(gy * inv * gvalid, p))  # fmt: skip
+        return self._depth_of(*sums, w)
+
+    def _depth_of(self, count: np.ndarray, total: np.ndarray, total_sq: np.ndarray, gcount: np.ndarray,
+                  gx_sum: np.ndarray, gy_sum: np.ndarray, w: int) -> np.ndarray:  # fmt: skip
+        """The depth block from each patch's sums ((h, w) float32 each): valid readings, their
+        sum and sum of squares, pixels with a valid central difference, and the depth
+        gradient over depth summed over those (x, y)."""
+        h = count.shape[0]
+        p = self.patch_size
+        area = float(p * p)
+        has = count >= MIN_DEPTH_COVER * area
+        if not has.any():
+            return np.zeros((DEPTH_DIM, h, w), np.float32)
+        safe = np.maximum(count, 1.0)
+        mean = total / safe
+        sq = total_sq / safe
+        spread = np.sqrt(np.maximum(sq - mean * mean, 0.0)) / np.maximum(mean, 1e-6)
+        rel = np.clip(np.log(np.maximum(mean, 1e-6) / np.median(mean[has])), -2.0, 2.0)
+        gcount = np.maximum(gcount, 1.0)
+        gxm = gx_sum / gcount
+        gym = gy_sum / gcount
         focal = FOCAL_FRACTION * w * p
         nx, ny = -focal * gxm, -focal * gym
         nnorm = np.sqrt(nx * nx + ny * ny + 1.0)
@@ -211,12 +240,17 @@ class ClassicalFeatures(PatchGridMixin):
         h, w = size[0] // self.patch_size, size[1] // self.patch_size
         depth = None if depth_m is None else np.asarray(depth_m, dtype=np.float32)
         rgb, depth = self._resize(np.ascontiguousarray(rgb), depth, size)
-        lab = _lab(rgb)
-        blocks = [
-            _cap_norm(self._colour(lab)) * BLOCK_WEIGHTS[0],
-            _cap_norm(self._texture(lab[0], h, w)) * BLOCK_WEIGHTS[1],
-            _cap_norm(self._depth(depth, h, w)) * BLOCK_WEIGHTS[2],
-        ]
+        if self.use_numba:
+            colour, hist0, hist1, energy, dsums = classical_numba.pixel_passes(rgb, depth, self.patch_size, N_BINS, _NUMBA_TABLES)
+            blocks = [
+                self._colour_of(colour[:3], colour[3:]),
+                self._texture_of(hist0 + hist1, energy),
+                np.zeros((DEPTH_DIM, h, w), np.float32) if dsums is None else self._depth_of(*dsums, w),
+            ]
+        else:
+            lab = _lab(rgb)
+            blocks = [self._colour(lab), self._texture(lab[0], h, w), self._depth(depth, h, w)]
+        blocks = [_cap_norm(b) * weight for b, weight in zip(blocks, BLOCK_WEIGHTS, strict=True)]
         feats = np.concatenate(blocks).transpose(1, 2, 0)
         norm = np.sqrt((feats * feats).sum(-1, keepdims=True))
         feats = (feats / np.maximum(norm, 1e-12)).astype(np.float32)

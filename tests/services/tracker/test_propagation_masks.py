@@ -7,7 +7,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from services.tracker.propagation import masks_to_soft, upsample_labels  # noqa: E402
+from services.tracker.propagation import masks_to_soft, upsample_ids, upsample_labels  # noqa: E402
 
 
 def test_area_fractions_hand_case():
@@ -106,6 +106,29 @@ def test_numba_upsample_equals_the_torch_path_bit_for_bit(h, w, H, W, n_slots, k
     slow = upsample_labels(y, H, W, use_numba=False)
     assert fast.dtype == slow.dtype == torch.int32 and fast.shape == slow.shape == (H, W)
     assert torch.equal(fast, slow)
+
+
+@pytest.mark.parametrize(("h", "w", "H", "W", "n_slots"), [(48, 85, 680, 1200, 30), (5, 3, 17, 23, 3), (8, 8, 4, 4, 5)])
+@pytest.mark.parametrize("kernel", [True, False])
+def test_track_ids_and_the_ids_present_come_from_the_kernel_as_from_the_slots(h, w, H, W, n_slots, kernel, monkeypatch):
+    """``upsample_ids``: the slot image through the slot -> track table, and the ids in it,
+    on both paths (the kernel marks the slots it writes; the torch path counts)."""
+    from services.tracker import upsample_numba
+
+    if not kernel:
+        monkeypatch.setattr(upsample_numba, "numba", None)
+    gen = torch.Generator().manual_seed(h + w + n_slots)
+    y = _sparse_labels(h, w, n_slots, gen)
+    y[..., n_slots - 1] = 0.0  # a track no pixel takes
+    tracks = [int(t) for t in 3 * torch.randperm(50, generator=gen)[: n_slots - 1] + 7]
+    slots = upsample_labels(y, H, W, use_numba=False).numpy()
+    want = np.asarray([-1, *tracks], np.int32)[slots]
+    ids, present = upsample_ids(y, H, W, tracks)
+    assert ids.dtype == np.int32 and np.array_equal(ids, want)
+    assert present == sorted(t for t in np.unique(want).tolist() if t >= 0)
+    assert tracks[-1] not in present
+    with pytest.raises(ValueError, match="label slots"):
+        upsample_ids(y, H, W, tracks[:1])
 
 
 def test_upsample_of_one_hot_blocks_is_exact_inside_blocks():

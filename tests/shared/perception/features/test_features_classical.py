@@ -171,3 +171,31 @@ def test_appearance_channels_do_not_depend_on_depth():
     assert a.shape[-1] == feats.appearance_dims
     np.testing.assert_allclose(np.linalg.norm(a, axis=-1), 1.0, atol=1e-5)
     np.testing.assert_allclose(a, b, atol=1e-5)
+
+
+@pytest.mark.parametrize("size", [(240, 320), (680, 1200), (123, 77)])
+def test_the_numba_passes_give_the_numpy_features_bit_for_bit(size):
+    """``use_numba``: the per-pixel passes in kernels, the per-patch formulas shared; every sum
+    in numpy's order and precision, so the features are the same to the bit (missing, NaN and
+    infinite depth, an edge-on depth step, a frame without depth and flat colour included)."""
+    from shared.perception.features import classical_numba
+    from shared.perception.features.classical import ClassicalFeatures
+
+    if not classical_numba.available():
+        pytest.skip("numba is not installed")
+    height, width = size
+    rgb, depth, _ = render(0.1, 240, 320, seed=3)
+    if (height, width) != (240, 320):  # the scene at another size, as a camera of that size sees it
+        ys = np.arange(height) * 240 // height
+        xs = np.arange(width) * 320 // width
+        rgb, depth = np.ascontiguousarray(rgb[ys[:, None], xs[None, :]]), np.ascontiguousarray(depth[ys[:, None], xs[None, :]])
+    depth = depth.copy()
+    depth[:20, :30] = 0.0
+    depth[30:40, 50:60] = np.nan
+    depth[45, 70:90] = np.inf
+    rgb[-25:, -25:] = 128
+    fast, slow = ClassicalFeatures(240, 5, use_numba=True), ClassicalFeatures(240, 5, use_numba=False)
+    for d in (depth, None, np.zeros_like(depth)):
+        a, b = fast(rgb, d).numpy(), slow(rgb, d).numpy()
+        assert a.shape == b.shape and a.dtype == b.dtype == np.float32
+        assert np.array_equal(a, b)
