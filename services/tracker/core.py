@@ -98,6 +98,7 @@ from services.tracker.footprints import (
     project_footprint,
     support,
 )
+from services.tracker.masks_numba import Boxes, mask_boxes
 from services.tracker.propagation import (
     masks_to_soft,
     propagate_with_config,
@@ -247,13 +248,15 @@ class TrackerCore:
         H, W = st.frame.depth.shape
         active = list(self.book.active)
         feats_np = st.features.float().cpu().numpy()
-        det_feat = mask_prototypes(appearance(feats_np, self.features.appearance_dims), masks.masks)
+        boxes = mask_boxes(masks.masks)  # each mask is read only inside its box from here on
+        det_feat = mask_prototypes(appearance(feats_np, self.features.appearance_dims), masks.masks, boxes)
         # The predicted masks of the active tracks are disjoint (one label per pixel): their
         # IoUs with the detections come from one slot image, not a stack of full masks.
         predicted = slot_image(self._predicted_labels(st, H, W), active)
-        iou = label_mask_iou(predicted, len(active), masks.masks)
+        iou = label_mask_iou(predicted, len(active), masks.masks, boxes)
         depth = st.frame.depth_m()
-        seen = [mask_footprint(m, depth, st.frame.intrinsics, st.frame.T_world_cam) for m in masks.masks]
+        seen = [mask_footprint(m, depth, st.frame.intrinsics, st.frame.T_world_cam, box=tuple(b))
+                for m, b in zip(masks.masks, boxes.tolist(), strict=True)]  # fmt: skip
         self._geometric_gate(active, seen, iou)
         a = associate_iou(iou, self._dino(active, det_feat.shape[-1]), det_feat, self.cfg.association)
         ids = [-1] * len(masks)
@@ -279,7 +282,7 @@ class TrackerCore:
             len(ids) - len(a.matches) - revived - absorbed, len(self.book.lost),
         )
 
-        st.labels = paint_labels(masks.masks, ids, H, W)
+        st.labels = paint_labels(masks.masks, ids, H, W, boxes)
         st.detected = set(ids)
         self.epoch += 1
         self.epoch_slots[self.epoch] = list(ids)
@@ -491,15 +494,22 @@ def appearance(
     return part / np.maximum(np.linalg.norm(part, axis=-1, keepdims=True), 1e-12)
 
 
-def paint_labels(masks: Annotated[np.ndarray, "(N, H, W) bool"], ids: list[int], H: int, W: int) -> Annotated[np.ndarray, "(H, W) int32"]:
+def paint_labels(
+    masks: Annotated[np.ndarray, "(N, H, W) bool"], ids: list[int], H: int, W: int, boxes: Boxes | None = None
+) -> Annotated[np.ndarray, "(H, W) int32"]:
     """One track id per pixel from possibly overlapping masks: larger masks are painted
-    first, so a small object lying on a large one keeps its own id."""
+    first, so a small object lying on a large one keeps its own id. ``boxes``: where each
+    mask's pixels are (:func:`~services.tracker.masks_numba.mask_boxes`)."""
     out = np.full((H, W), -1, np.int32)
     if len(ids) == 0:
         return out
-    order = np.argsort(-masks.reshape(len(ids), -1).sum(1), kind="stable")
+    if boxes is None:
+        boxes = np.tile(np.array([0, H, 0, W], np.int64), (len(ids), 1))
+    crops = [masks[j, y0:y1, x0:x1] for j, (y0, y1, x0, x1) in enumerate(boxes.tolist())]
+    order = np.argsort(-np.array([int(c.sum()) for c in crops], np.int64), kind="stable")
     for j in order:
-        out[masks[j]] = ids[j]
+        y0, y1, x0, x1 = boxes[j].tolist()
+        out[y0:y1, x0:x1][crops[j]] = ids[j]
     return out
 
 

@@ -52,22 +52,28 @@ def mask_footprint(
     K: Intrinsics,
     T_world_cam: Pose,
     max_points: int = MAX_POINTS,
+    box: tuple[int, int, int, int] | None = None,
 ) -> Footprint | None:
     """The mask's pixels with a depth reading, sampled every s pixels in x and y so at most
-    about ``max_points`` remain, in world coordinates. None without any valid depth."""
-    valid = mask & (depth_m > 0) & np.isfinite(depth_m)
+    about ``max_points`` remain, in world coordinates. None without any valid depth.
+    ``box`` (y0, y1, x0, x1): where the mask's pixels are, so only that part is read."""
+    y0, y1, x0, x1 = (0, mask.shape[0], 0, mask.shape[1]) if box is None else box
+    d = depth_m[y0:y1, x0:x1]
+    valid = mask[y0:y1, x0:x1] & (d > 0) & np.isfinite(d)
     n = int(valid.sum())
     if n == 0:
         return None
     step = max(1, math.ceil(math.sqrt(n / max_points)))
     if step > 1:
+        # every step-th row and column of the image (not of the box)
         grid = np.zeros_like(valid)
-        grid[::step, ::step] = True
+        grid[(-y0) % step :: step, (-x0) % step :: step] = True
         sampled = valid & grid
         # A thin mask can fall between the grid lines: keep it whole rather than lose it.
         if sampled.any():
             valid = sampled
     ys, xs = np.nonzero(valid)
+    ys, xs = ys + y0, xs + x0
     z = depth_m[ys, xs].astype(np.float64)
     cam = np.stack([(xs - K.cx) / K.fx * z, (ys - K.cy) / K.fy * z, z], axis=1)
     world = cam @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
