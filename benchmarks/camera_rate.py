@@ -606,6 +606,12 @@ def live_rate(seq: Path, voxel: float, bag: Path, frames: int, hz: float, work: 
     player = None
     try:
         _wait_for(lambda: sup.procs["source"].state == "alive", STARTUP_S, "the live chain was not up", sup)
+        # The simulated VL encoder finds each keyframe's ground truth through an index of the
+        # sequence's images, built on a thread from its start (10 s of a core at 1200x680):
+        # harness setup a robot's real models do not have, so the camera starts after it.
+        vl_log = plan.log_dir / "keyframe_vl.log"
+        _wait_for(lambda: vl_log.is_file() and "ground-truth image index of" in vl_log.read_text(errors="replace"),
+                  STARTUP_S, "keyframe_vl's ground-truth index was not built", sup)  # fmt: skip
         startup_s = time.monotonic() - t0
         log.info("live %g Hz: chain up in %.0f s; playing %d frames", hz, startup_s, frames)
         cmd = [sys.executable, "-m", "services.cli", "ros2", "play", str(bag), "--config", str(plan.config_path),

@@ -561,7 +561,7 @@ def test_jpeg_of_a_smooth_image_is_close() -> None:
 
 
 def test_decode_default_config_matches_encode_default_config() -> None:
-    """encode/decode without cfg use CodecConfig() (labels zlib, rgb raw)."""
+    """encode/decode without cfg use CodecConfig() (labels and rgb raw: a robot's loopback)."""
     h, w = 3, 4
     frame = Frame(
         frame_index=1,
@@ -575,7 +575,7 @@ def test_decode_default_config_matches_encode_default_config() -> None:
     payload = encode(tracked, robot_id="robot0", seq=7, stamp=1.5)
     body = msgpack.unpackb(payload)["body"]
     assert body["frame"]["rgb"]["__nd__"] == "raw"
-    assert body["track_ids"]["__nd__"] == "zlib"
+    assert body["track_ids"]["__nd__"] == "raw"
     env = decode(payload, TrackedFrame)
     assert_same(env.body, tracked, CodecConfig(), "TrackedFrame")
 
