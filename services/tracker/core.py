@@ -80,7 +80,7 @@ from collections import deque
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Annotated
+from typing import Annotated, Any
 
 import numpy as np
 import torch
@@ -303,11 +303,12 @@ class TrackerCore:
         rows, cols = np.nonzero(iou >= cfg.iou_min)
         found: dict[tuple[int, int], float] = {}
         best = np.zeros(iou.shape[1], np.float32)
+        trees: dict[int, Any] = {}  # one k-d tree per track footprint, whatever its candidates
         for i, j in zip(rows.tolist(), cols.tolist(), strict=True):
             fp = self.book.tracks[active[i]].footprint
             if fp is None or seen[j] is None:
                 continue
-            found[i, j] = v = support(fp, seen[j], cfg.support_radius_m)
+            found[i, j] = v = support(fp, seen[j], cfg.support_radius_m, trees)
             best[j] = max(best[j], v)
         for (i, j), v in found.items():
             if v < cfg.support_min or v < cfg.support_relative * best[j]:
@@ -518,6 +519,15 @@ def slot_image(labels: Annotated[np.ndarray, "(H, W) int32 track ids"], slots: l
     if not slots:
         return np.zeros(labels.shape, np.int64)
     ids = np.asarray(slots, np.int64)
+    top = int(ids.max())
+    if ids.min() >= 0 and top <= 4 * labels.size + 1024 and labels.dtype.kind == "i" and labels.size:
+        # a table over -1 .. max(id): one lookup per pixel (the tracker's ids are sequential;
+        # sorting the pixels into the slots took 13 ms at 1200x680)
+        lo, hi = int(labels.min()), int(labels.max())
+        if lo >= -1:
+            lut = np.zeros(max(hi, top) + 2, np.int64)
+            lut[ids[::-1] + 1] = np.arange(len(ids), 0, -1)  # a repeated id keeps its first slot
+            return lut[labels + 1]
     order = np.argsort(ids)
     pos = np.searchsorted(ids[order], labels)
     pos = np.clip(pos, 0, len(ids) - 1)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, Any
 
 import numpy as np
 from scipy import ndimage
@@ -152,14 +152,22 @@ def support(
     track: Footprint,
     seen: Footprint,
     radius_m: float,
+    trees: dict[int, Any] | None = None,
 ) -> float:
     """Share of the points of ``seen`` (a detection's footprint) that lie within ``radius_m``,
     or within 1.5 sampling steps of either footprint if that is larger, of a point of
-    ``track``: the 3D overlap of eq. 8, between a detection and what a track was seen as."""
+    ``track``: the 3D overlap of eq. 8, between a detection and what a track was seen as.
+    ``trees``: k-d trees of track footprints built so far (by ``id``), for a caller that
+    tests one track against several detections."""
     from scipy.spatial import cKDTree
 
     if len(seen.points) == 0 or len(track.points) == 0:
         return 0.0
     r = max(radius_m, 1.5 * max(track.spacing_m, seen.spacing_m))
-    dist, _ = cKDTree(track.points).query(seen.points, k=1, distance_upper_bound=r)
+    tree = None if trees is None else trees.get(id(track))
+    if tree is None:
+        tree = cKDTree(track.points)
+        if trees is not None:
+            trees[id(track)] = tree
+    dist, _ = tree.query(seen.points, k=1, distance_upper_bound=r)
     return float(np.isfinite(dist).mean())

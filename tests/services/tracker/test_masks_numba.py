@@ -76,3 +76,20 @@ def test_boxed_passes_equal_whole_image_passes(height, width, h, w, kernel, monk
             if a is not None:
                 np.testing.assert_array_equal(a.points, b.points)
                 assert a.spacing_m == b.spacing_m
+
+
+def test_slot_image_by_table_equals_the_sorted_lookup():
+    from services.tracker.core import slot_image
+
+    rng = np.random.default_rng(5)
+    labels = rng.integers(-1, 60, (40, 50)).astype(np.int32)
+    for slots in ([7, 3, 59, 12], [5], list(range(0, 60, 2)), [70, 3], [3, 9, 3]):
+        ids = np.asarray(slots, np.int64)
+        order = np.argsort(ids, kind="stable")
+        pos = np.clip(np.searchsorted(ids[order], labels), 0, len(ids) - 1)
+        want = np.where(ids[order][pos] == labels, order[pos] + 1, 0)
+        got = slot_image(labels, slots)
+        assert got.dtype == np.int64 and np.array_equal(got, want), slots
+    assert not slot_image(labels, []).any()
+    huge = [2**40]  # sparse huge ids: the sorted lookup
+    assert not slot_image(labels, huge).any()
