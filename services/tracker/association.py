@@ -157,15 +157,18 @@ def associate_iou(
 def sparse_mask_iou(
     masks: list[Annotated[np.ndarray, "(H, W) bool"]],
     detected: Annotated[np.ndarray, "(N, H, W) bool"],
+    det_area: Annotated[np.ndarray, "(N,) int pixels of each detection"] | None = None,
 ) -> Annotated[np.ndarray, "(M, N) float32"]:
     """``mask_iou`` of a few small masks against a stack, touching only each mask's pixels:
-    for many candidates the dense product would hold M full-resolution float images."""
+    for many candidates the dense product would hold M full-resolution float images.
+    ``det_area``: the detections' areas where the caller has them (a pass over the stack)."""
     n = detected.shape[0]
     out = np.zeros((len(masks), n), np.float32)
     if not masks or n == 0:
         return out
     flat = detected.reshape(n, -1)
-    det_area = flat.sum(1)
+    if det_area is None:
+        det_area = flat.sum(1)
     for i, m in enumerate(masks):
         idx = np.flatnonzero(m)
         if len(idx) == 0:

@@ -98,7 +98,7 @@ from services.tracker.footprints import (
     project_footprint,
     support,
 )
-from services.tracker.masks_numba import Boxes, mask_boxes
+from services.tracker.masks_numba import Boxes, mask_areas, mask_boxes
 from services.tracker.propagation import (
     masks_to_soft,
     propagate_with_config,
@@ -263,8 +263,9 @@ class TrackerCore:
         for i, j in a.matches:
             ids[j] = active[i]
         self.book.lose([active[i] for i in a.retired_tracks], st.count)
-        revived = self._reidentify(st, masks.masks, det_feat, a.new_detections, ids)
-        absorbed = self._absorb_fragments(predicted, active, masks.masks, det_feat, seen, ids)
+        areas = mask_areas(masks.masks, boxes)
+        revived = self._reidentify(st, masks.masks, det_feat, a.new_detections, ids, areas)
+        absorbed = self._absorb_fragments(predicted, active, masks.masks, det_feat, seen, ids, boxes, areas)
         for j, tid in enumerate(ids):
             if tid >= 0:
                 self.book.tracks[tid].detected(det_feat[j], st.count, self.cfg.association.ema)
@@ -322,6 +323,8 @@ class TrackerCore:
         det_feat: Annotated[np.ndarray, "(N, D) float32"],
         seen: list[Footprint | None],
         ids: list[int],
+        boxes: Boxes,
+        areas: Annotated[np.ndarray, "(N,) int64"],
     ) -> int:
         """Detections left without a track that are a piece of an object whose track took
         another piece: mostly (``tracker.fragments.cover``) inside that track's predicted mask,
@@ -336,10 +339,11 @@ class TrackerCore:
         joined = 0
         frag, radius = self.cfg.fragments, self.cfg.association.support_radius_m
         for j in [j for j, tid in enumerate(ids) if tid < 0]:
-            area = int(masks[j].sum())
+            area = int(areas[j])
             if area == 0 or not taken:
                 continue
-            inside = np.bincount(predicted[masks[j]], minlength=len(active) + 1)
+            y0, y1, x0, x1 = boxes[j].tolist()
+            inside = np.bincount(predicted[y0:y1, x0:x1][masks[j, y0:y1, x0:x1]], minlength=len(active) + 1)
             best = max(taken, key=lambda tid: inside[slot_of[tid]])
             if inside[slot_of[best]] < frag.cover * area:
                 continue
@@ -358,6 +362,7 @@ class TrackerCore:
         det_feat: Annotated[np.ndarray, "(N, D) float32"],
         unmatched: list[int],
         ids: list[int],
+        areas: Annotated[np.ndarray, "(N,) int64"] | None = None,
     ) -> int:
         """Second pass of eq. 3: detections no active track took, against the lost tracks,
         whose predicted masks are their footprints projected into this keyframe. Fills
@@ -383,7 +388,7 @@ class TrackerCore:
                 projected.append(m)
         if not cands:
             return 0
-        iou = sparse_mask_iou(projected, masks)  # (L, N), every detection
+        iou = sparse_mask_iou(projected, masks, areas)  # (L, N), every detection
         revived: set[int] = set()
         if unmatched:
             b = associate_iou(iou[:, unmatched], self._dino(cands, det_feat.shape[-1]), det_feat[unmatched], self.cfg.association)

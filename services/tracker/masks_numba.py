@@ -100,3 +100,8 @@ def slot_counts(
         area[j] = len(inside)
         inter[:, j] = np.bincount(inside, minlength=m + 1)[1 : m + 1]
     return inter, area
+
+
+def mask_areas(masks: Annotated[np.ndarray, "(N, H, W) bool"], boxes: Boxes) -> Annotated[np.ndarray, "(N,) int64"]:
+    """Pixels of each mask, counted inside its box."""
+    return np.array([int(np.count_nonzero(masks[i, y0:y1, x0:x1])) for i, (y0, y1, x0, x1) in enumerate(boxes.tolist())], np.int64)

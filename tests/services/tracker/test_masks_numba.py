@@ -10,7 +10,7 @@ from services.tracker import masks_numba
 from services.tracker.association import area_fractions, label_mask_iou, mask_iou
 from services.tracker.core import paint_labels
 from services.tracker.footprints import mask_footprint
-from services.tracker.masks_numba import mask_boxes
+from services.tracker.masks_numba import mask_areas, mask_boxes
 from shared.geometry import Intrinsics
 
 
@@ -51,6 +51,7 @@ def test_boxed_passes_equal_whole_image_passes(height, width, h, w, kernel, monk
         assert masks[i].sum() == masks[i, y0:y1, x0:x1].sum()
         if masks[i].any():
             assert masks[i, y0].any() and masks[i, y1 - 1].any() and masks[i, :, x0].any() and masks[i, :, x1 - 1].any()
+    np.testing.assert_array_equal(mask_areas(masks, boxes), masks.reshape(len(masks), -1).sum(1))
     np.testing.assert_array_equal(area_fractions(masks, h, w, boxes), _reference_fractions(masks, h, w))
     np.testing.assert_array_equal(area_fractions(masks, h, w), _reference_fractions(masks, h, w))
     # predicted tracks as a slot image (disjoint), against the stack: the dense IoU
