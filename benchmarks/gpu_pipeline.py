@@ -189,7 +189,7 @@ def install_stage_timers(times: StageTimes) -> None:
 
     tracker_core.TrackerCore.__init__ = tracker_init  # type: ignore[method-assign]
     tracker_core.propagate_with_config = times.timed(tracker_core.propagate_with_config, "propagation")
-    tracker_core.upsample_labels = times.timed(tracker_core.upsample_labels, "upsample")
+    tracker_core.upsample_ids = times.timed(tracker_core.upsample_ids, "upsample")  # slots to track ids, upsampled
     KeyframeVLCore.segment = times.timed(KeyframeVLCore.segment, "fastsam")  # type: ignore[method-assign]
     KeyframeVLCore.features = times.timed(KeyframeVLCore.features, "clip")  # type: ignore[method-assign]
     integrate = HypothesisTSDF.integrate
@@ -203,9 +203,11 @@ def install_stage_timers(times: StageTimes) -> None:
 
     HypothesisTSDF.integrate = tsdf_integrate  # type: ignore[method-assign]
     # a graph update meshes through one of these: Open3D on the grid (CUDA), or the numba
-    # marching cubes over the copied blocks (CPU; extract_mesh is not called then)
+    # marching cubes over the copied blocks (CPU; extract_mesh is not called then), of the
+    # changed blocks only with fusion.incremental_mesh
     HypothesisTSDF.extract_mesh = times.timed(HypothesisTSDF.extract_mesh, "mesh")  # type: ignore[method-assign]
     HypothesisTSDF.mesh_of = times.timed(HypothesisTSDF.mesh_of, "mesh")  # type: ignore[method-assign]
+    HypothesisTSDF.mesh_of_update = times.timed(HypothesisTSDF.mesh_of_update, "mesh")  # type: ignore[method-assign]
     SegmentLayer.update = times.timed(SegmentLayer.update, "segments")  # type: ignore[method-assign]
     FusionCore.update = times.timed(FusionCore.update, "graph_update")  # type: ignore[method-assign]
 
