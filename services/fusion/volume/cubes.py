@@ -207,11 +207,19 @@ if numba is not None:
         return n
 
     @numba.njit(cache=True, nogil=True)
-    def _number_edges(keys, res, lut, lo, cubes, cases, bits, index):  # pragma: no cover - compiled
-        """A vertex number for every edge with a surface crossing, in cube order, and its
-        first voxel and axis (``owners``: block, z, y, x, axis)."""
+    def _edges_and_faces(keys, res, lut, lo, tris, bits, cubes, cases, index, per_piece):  # pragma: no cover - compiled
+        """In cube order: a vertex number for every edge with a surface crossing, its first
+        voxel and axis (``owners``: block, z, y, x, axis) and block (``vpiece``), then the
+        cube's triangles (``faces``) and block (``fpiece``). With ``per_piece`` each block's
+        cubes (which come together) number their vertices apart, so a block's piece of the
+        mesh holds its own copy of an edge it shares (:mod:`services.fusion.volume.incremental`);
+        without, an edge has one vertex."""
         owners = np.empty((12 * len(cubes), 5), np.int64)
+        vpiece = np.empty(12 * len(cubes), np.int64)
+        faces = np.empty((5 * len(cubes), 3), np.int64)
+        fpiece = np.empty(5 * len(cubes), np.int64)
         n = 0
+        f = 0
         r3, r2 = res * res * res, res * res
         for i in range(len(cubes)):
             c = cubes[i]
@@ -222,11 +230,23 @@ if numba is not None:
                     q = _FIRST[e]
                     nb, nx, ny, nz = _at(lut, lo, keys, b, x + _CX[q], y + _CY[q], z + _CZ[q], res)
                     a = _AXIS[e]
-                    if index[nb, nz, ny, nx, a] < 0:
+                    v = index[nb, nz, ny, nx, a]
+                    if v < 0 or (per_piece and vpiece[v] != b):
                         index[nb, nz, ny, nx, a] = n
                         owners[n, 0], owners[n, 1], owners[n, 2], owners[n, 3], owners[n, 4] = nb, nz, ny, nx, a
+                        vpiece[n] = b
                         n += 1
-        return owners[:n]
+            for j in range(0, 16, 3):  # every edge of this cube is numbered by now
+                if tris[cases[i], j] < 0:
+                    break
+                for m in range(3):
+                    e = tris[cases[i], j + m]
+                    q = _FIRST[e]
+                    nb, nx, ny, nz = _at(lut, lo, keys, b, x + _CX[q], y + _CY[q], z + _CZ[q], res)
+                    faces[f, m] = index[nb, nz, ny, nx, _AXIS[e]]
+                fpiece[f] = b
+                f += 1
+        return owners[:n], vpiece[:n], faces[:f], fpiece[:f]
 
     @numba.njit(cache=True, nogil=True)
     def _vertices(keys, tsdf, color, hyp_id, hyp_w, anchor, res, voxel, lut, lo, owners):  # pragma: no cover - compiled
@@ -265,31 +285,6 @@ if numba is not None:
             anc[v] = anchor[b, z, y, x] if 1.0 - t >= t else anchor[nb, nz, ny, nx]
         return pos, col, ids_a, w_a, ids_b, w_b, anc
 
-    @numba.njit(cache=True, nogil=True)
-    def _triangles(keys, res, lut, lo, tris, cubes, cases, index):  # pragma: no cover - compiled
-        count = 0
-        for i in range(len(cubes)):
-            for j in range(0, 16, 3):
-                if tris[cases[i], j] < 0:
-                    break
-                count += 1
-        faces = np.empty((count, 3), np.int64)
-        f = 0
-        r3, r2 = res * res * res, res * res
-        for i in range(len(cubes)):
-            c = cubes[i]
-            b, z, y, x = c // r3, (c // r2) % res, (c // res) % res, c % res
-            for j in range(0, 16, 3):
-                if tris[cases[i], j] < 0:
-                    break
-                for m in range(3):
-                    e = tris[cases[i], j + m]
-                    q = _FIRST[e]
-                    nb, nx, ny, nz = _at(lut, lo, keys, b, x + _CX[q], y + _CY[q], z + _CZ[q], res)
-                    faces[f, m] = index[nb, nz, ny, nx, _AXIS[e]]
-                f += 1
-        return faces
-
 
 def available() -> bool:
     """The kernels need numba."""
@@ -318,10 +313,9 @@ def march(
     m = _cases(keys, blocks.tsdf, blocks.weight, np.float32(weight_threshold), res, lut, lo, scan, cubes, cases)
     cubes, cases = cubes[:m], cases[:m]
     index = np.full((n, res, res, res, 3), -1, np.int32)
-    owners = _number_edges(keys, res, lut, lo, cubes, cases, bits, index)
+    owners, _, faces, _ = _edges_and_faces(keys, res, lut, lo, tris, bits, cubes, cases, index, False)
     pos, col, ids_a, w_a, ids_b, w_b, anc = _vertices(keys, blocks.tsdf, blocks.color, blocks.hyp_id, blocks.hyp_w, blocks.anchor,
                                                       res, np.float32(voxel_size), lut, lo, owners)  # fmt: skip
-    faces = _triangles(keys, res, lut, lo, tris, cubes, cases, index)
     return pos, col, faces, (ids_a, w_a, ids_b, w_b), anc
 
 

@@ -66,47 +66,6 @@ def changed_rows(
 
 
 if numba is not None:
-    _at = cubes._at
-    _FIRST, _AXIS, _CX, _CY, _CZ = cubes._FIRST, cubes._AXIS, cubes._CX, cubes._CY, cubes._CZ
-
-    @numba.njit(cache=True, nogil=True)
-    def _piece_edges(keys, res, lut, lo, tris, bits, cubes_, cases, index):  # pragma: no cover - compiled
-        """Number each piece's vertices apart (cubes come in block order, one block's together):
-        an edge gets a new vertex unless this block's cubes numbered it already. The vertices'
-        edges (block, z, y, x, axis) and pieces, the faces and theirs."""
-        owners = np.empty((12 * len(cubes_), 5), np.int64)
-        vpiece = np.empty(12 * len(cubes_), np.int64)
-        faces = np.empty((5 * len(cubes_), 3), np.int64)
-        fpiece = np.empty(5 * len(cubes_), np.int64)
-        n = 0
-        f = 0
-        r3, r2 = res * res * res, res * res
-        for i in range(len(cubes_)):
-            c = cubes_[i]
-            b, z, y, x = c // r3, (c // r2) % res, (c // res) % res, c % res
-            eb = bits[cases[i]]
-            for e in range(12):
-                if (eb >> e) & 1:
-                    q = _FIRST[e]
-                    nb, nx, ny, nz = _at(lut, lo, keys, b, x + _CX[q], y + _CY[q], z + _CZ[q], res)
-                    a = _AXIS[e]
-                    v = index[nb, nz, ny, nx, a]
-                    if v < 0 or vpiece[v] != b:
-                        index[nb, nz, ny, nx, a] = n
-                        owners[n, 0], owners[n, 1], owners[n, 2], owners[n, 3], owners[n, 4] = nb, nz, ny, nx, a
-                        vpiece[n] = b
-                        n += 1
-            for j in range(0, 16, 3):
-                if tris[cases[i], j] < 0:
-                    break
-                for m in range(3):
-                    e = tris[cases[i], j + m]
-                    q = _FIRST[e]
-                    nb, nx, ny, nz = _at(lut, lo, keys, b, x + _CX[q], y + _CY[q], z + _CZ[q], res)
-                    faces[f, m] = index[nb, nz, ny, nx, _AXIS[e]]
-                fpiece[f] = b
-                f += 1
-        return owners[:n], vpiece[:n], faces[:f], fpiece[:f]
 
     @numba.njit(cache=True, nogil=True)
     def _join(a, b):  # pragma: no cover - compiled
@@ -207,7 +166,7 @@ class MeshCache:
         cube_at, cases = np.empty(size, np.int64), np.empty(size, np.uint8)
         m = cubes._cases(keys, blocks.tsdf, blocks.weight, np.float32(weight_threshold), res, lut, lo, scan, cube_at, cases)
         index = np.full((n, res, res, res, 3), -1, np.int32)
-        owners, vpiece, faces, fpiece = _piece_edges(keys, res, lut, lo, tris, bits, cube_at[:m], cases[:m], index)
+        owners, vpiece, faces, fpiece = cubes._edges_and_faces(keys, res, lut, lo, tris, bits, cube_at[:m], cases[:m], index, True)
         pos, col, ids_a, w_a, ids_b, w_b, anc = cubes._vertices(keys, blocks.tsdf, blocks.color, blocks.hyp_id, blocks.hyp_w, blocks.anchor,
                                                                 res, np.float32(voxel_size), lut, lo, owners)  # fmt: skip
         hyp_ids, hyp_w = merge_hypotheses(ids_a, w_a, ids_b, w_b, self.k)
@@ -248,4 +207,4 @@ def warm_up() -> None:
     tris, bits = cubes.case_table()
     keys = np.zeros((1, 3), np.int64)
     lut, lo = cubes._block_lut(keys)
-    _piece_edges(keys, 2, lut, lo, tris, bits, np.zeros(0, np.int64), np.zeros(0, np.uint8), np.full((1, 2, 2, 2, 3), -1, np.int32))
+    cubes._edges_and_faces(keys, 2, lut, lo, tris, bits, np.zeros(0, np.int64), np.zeros(0, np.uint8), np.full((1, 2, 2, 2, 3), -1, np.int32), True)
